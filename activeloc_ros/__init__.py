@@ -1,0 +1,1 @@
+"""Active action localization with predictive learning and reactive control."""

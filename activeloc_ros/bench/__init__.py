@@ -1,0 +1,1 @@
+"""Benchmarks: `python -m activeloc_ros.bench {perception,passive,...} --help`."""

@@ -1,0 +1,54 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = 'activeloc_ros'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        ('share/' + package_name + '/params', glob('params/*.yaml')),
+        ('share/' + package_name + '/arduino/braccio_serial',
+         glob('activeloc_ros/arduino/braccio_serial/*.ino')),
+    ],
+    package_data={package_name: ['arduino/braccio_serial/*.ino']},
+    python_requires='>=3.10',
+    # rclpy and the message packages come from a sourced ROS 2 Jazzy or, where there is
+    # none, from the PyPI wheels in the 'ros' extra (the Makefile decides which).
+    install_requires=[
+        'numpy>=1.24',
+        'torch==2.13.0',
+        'opencv-contrib-python-headless==5.0.0.93',
+        'mcap==1.6.0',
+        'rosbags==0.11.9',
+        'PyYAML>=6.0',
+        'matplotlib>=3.7',
+    ],
+    extras_require={
+        'ros': [
+            'ros-jazzy-rclpy[fastrtps]==7.1.6',
+            'ros-jazzy-common-interfaces==5.3.6',
+        ],
+        'realsense': ['pyrealsense2'],
+        'test': ['pytest==9.2.0', 'hypothesis==6.170.15'],
+    },
+    zip_safe=True,
+    maintainer='activeloc_ros developers',
+    maintainer_email='activeloc-ros@users.noreply.github.com',
+    description='Active action localization with predictive learning and reactive control.',
+    license='Apache-2.0',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            'camera_node = activeloc_ros.camera_node:main',
+            'perception_node = activeloc_ros.perception_node:main',
+            'controller_node = activeloc_ros.controller_node:main',
+            'arm_node = activeloc_ros.arm_node:main',
+            'bringup = activeloc_ros.bringup:main',
+        ],
+    },
+)
