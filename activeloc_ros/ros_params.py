@@ -1,0 +1,107 @@
+"""Typed, described and validated ROS parameters, and the Jazzy run idiom for every node.
+
+Validation is a pure function per parameter (value -> error message or None), registered
+before the parameters are declared so values from `params/*.yaml` are validated too.
+"""
+import sys
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence
+
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+import rclpy
+from rclpy.exceptions import InvalidParameterValueException
+from rclpy.executors import ExternalShutdownException
+
+from activeloc_ros.errors import ActivelocError, ConfigError
+
+Check = Callable[[Any], 'str | None']
+
+
+@dataclass(frozen=True)
+class Param:
+    name: str
+    default: Any
+    description: str
+    check: Check | None = None
+    read_only: bool = False
+
+
+def in_range(lo: float, hi: float) -> Check:
+    def check(value):
+        return None if lo <= value <= hi else f'must be in [{lo}, {hi}], got {value}'
+    return check
+
+
+def positive(value) -> 'str | None':
+    return None if value > 0 else f'must be > 0, got {value}'
+
+
+def non_negative(value) -> 'str | None':
+    return None if value >= 0 else f'must be >= 0, got {value}'
+
+
+def one_of(*choices: str) -> Check:
+    def check(value):
+        return None if value in choices else f'must be one of {list(choices)}, got {value!r}'
+    return check
+
+
+def validate(params: Sequence[Param], values: dict[str, Any]) -> list[str]:
+    """Return one message per invalid value, naming the parameter."""
+    by_name = {p.name: p for p in params}
+    errors = []
+    for name, value in values.items():
+        spec = by_name.get(name)
+        if spec is not None and spec.check is not None:
+            problem = spec.check(value)
+            if problem:
+                errors.append(f'parameter {name!r} {problem}')
+    return errors
+
+
+def declare(node, params: Sequence[Param]) -> dict[str, Any]:
+    """Declare `params` on `node` with descriptors and validation; return their values.
+
+    Raises ConfigError naming the parameter when a value (default, YAML or command line)
+    is invalid.
+    """
+    def on_set(changes):
+        errors = validate(params, {p.name: p.value for p in changes})
+        return SetParametersResult(successful=not errors, reason='; '.join(errors))
+
+    node.add_on_set_parameters_callback(on_set)
+    for spec in params:
+        descriptor = ParameterDescriptor(description=spec.description, read_only=spec.read_only)
+        try:
+            node.declare_parameter(spec.name, spec.default, descriptor)
+        except InvalidParameterValueException as exc:
+            reason = exc.args[2] if len(exc.args) == 3 else str(exc)
+            raise ConfigError(f'node {node.get_name()!r}: {reason}') from exc
+    return {p.name: node.get_parameter(p.name).value for p in params}
+
+
+def run(node_factory: Callable[..., Any], args=None, *, on_stop: Callable[[Any], None] | None = None) -> int:
+    """Init, spin and shut down one node the Jazzy way; a project error exits 1 with a message.
+
+    :param on_stop: called with the node after Ctrl-C and before the context ends, so
+        the node can act on purpose (the arm holds) while it can still publish.
+    """
+    from rclpy.signals import SignalHandlerOptions
+    handler = SignalHandlerOptions.NO if on_stop else SignalHandlerOptions.ALL
+    rclpy.init(args=args, signal_handler_options=handler)
+    node = None
+    try:
+        node = node_factory()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ActivelocError as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 1
+    finally:
+        if node is not None:
+            if on_stop is not None and rclpy.ok():
+                on_stop(node)
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
