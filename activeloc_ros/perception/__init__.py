@@ -1,0 +1,1 @@
+"""Perception: ImageNet encoders and the online predictive-learning surprise model (ROS-free)."""
