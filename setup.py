@@ -12,6 +12,7 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/params', glob('params/*.yaml')),
+        ('share/' + package_name + '/bags/vtest', glob('bags/vtest/*')),
         ('share/' + package_name + '/arduino/braccio_serial',
          glob('activeloc_ros/arduino/braccio_serial/*.ino')),
     ],

@@ -92,7 +92,9 @@ def run(node_factory: Callable[..., Any], args=None, *, on_stop: Callable[[Any],
     node = None
     try:
         node = node_factory()
-        rclpy.spin(node)
+        # A node that ends by itself (a camera at the end of its bag) sets `finished`.
+        while rclpy.ok() and not getattr(node, 'finished', False):
+            rclpy.spin_once(node, timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ActivelocError as exc:

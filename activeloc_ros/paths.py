@@ -1,0 +1,16 @@
+"""Where the package's data files are: the source tree when run from it, else share/."""
+from pathlib import Path
+
+SOURCE_ROOT = Path(__file__).resolve().parents[1]
+
+
+def share_path(relative: str) -> Path:
+    """`relative` (e.g. 'params/camera.yaml') in the source tree, else in the installed share."""
+    here = SOURCE_ROOT / relative
+    if here.exists():
+        return here
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        return Path(get_package_share_directory('activeloc_ros')) / relative
+    except (ImportError, LookupError):
+        return here

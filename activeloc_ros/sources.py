@@ -1,0 +1,277 @@
+"""Camera sources, ROS-free: bags, videos, image folders, OpenCV devices and RealSense.
+
+A source yields Frames (RGB uint8, a time stamp in seconds and an index). Recorded sources
+(`live = False`) are replayed at their recorded timing by a Pacer; live ones deliver frames
+as the device does. `open_source(spec)` parses the spec strings the camera node accepts:
+
+    bag:PATH        an MCAP bag (rosbag2 folder or .mcap file) with an Image or
+                    CompressedImage topic
+    video:PATH      any video OpenCV decodes
+    folder:PATH     the images of a folder, sorted by name
+    device:N        OpenCV capture device N
+    realsense       the colour stream of an Intel RealSense (pyrealsense2)
+"""
+from collections import Counter
+from dataclasses import dataclass
+import math
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+
+from activeloc_ros import bag
+from activeloc_ros.errors import FrameError, SourceError
+from activeloc_ros.images import decode_compressed, image_to_rgb
+from activeloc_ros.paths import share_path
+
+IMAGE_SUFFIXES = ('.jpg', '.jpeg', '.png', '.bmp', '.ppm', '.pgm', '.tif', '.tiff', '.webp')
+
+
+@dataclass
+class Frame:
+    rgb: np.ndarray   # (H, W, 3) uint8
+    stamp: float      # seconds on the source's clock (recorded or capture time)
+    index: int
+
+
+def pinhole_matrix(width: int, height: int, hfov_deg: float) -> np.ndarray:
+    """K of an ideal pinhole camera with square pixels and the given horizontal field of view."""
+    fx = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+    return np.array([[fx, 0.0, width / 2.0], [0.0, fx, height / 2.0], [0.0, 0.0, 1.0]])
+
+
+class Source:
+    """Base of all sources. `read()` returns the next Frame or None at the end of the stream."""
+
+    live = False
+    fps: float | None = None
+
+    def __init__(self):
+        # problems with frames that were skipped, by message (the node logs each kind once)
+        self.skipped = Counter()
+
+    def read(self) -> Frame | None:
+        raise NotImplementedError
+
+    def rewind(self) -> None:
+        raise SourceError(f'{type(self).__name__} cannot loop')
+
+    def camera_matrix(self) -> np.ndarray | None:
+        """Intrinsics the source itself knows (recorded CameraInfo, device SDK), else None."""
+        return None
+
+    def close(self) -> None:
+        pass
+
+
+class BagSource(Source):
+    def __init__(self, path: Path, *, topic: str = ''):
+        super().__init__()
+        self.facts = bag.bag_facts(path)
+        self.topic = bag.choose_image_topic(self.facts, topic)
+        self.path = Path(path)
+        self._k = self._recorded_camera_matrix()
+        self.rewind()
+
+    def _recorded_camera_matrix(self) -> np.ndarray | None:
+        infos = [t.name for t in self.facts.topics
+                 if t.msgtype == bag.CAMERA_INFO_TYPE and t.count > 0]
+        for _, _, _, msg in bag.read_messages(self.path, infos[:1]):
+            k = np.asarray(msg.k, dtype=float).reshape(3, 3)
+            if k[0, 0] > 0 and k[1, 1] > 0:
+                return k
+        return None
+
+    def rewind(self) -> None:
+        self._messages: Iterator = bag.read_messages(self.path, [self.topic.name])
+        self._index = 0
+
+    def read(self) -> Frame | None:
+        for _, msgtype, log_ns, msg in self._messages:
+            try:
+                if msgtype == 'sensor_msgs/msg/CompressedImage':
+                    rgb = decode_compressed(msg.format, msg.data.tobytes())
+                else:
+                    rgb = image_to_rgb(msg.encoding, msg.height, msg.width, msg.step,
+                                       msg.data.tobytes())
+            except FrameError as exc:
+                self.skipped[str(exc)] += 1
+                continue
+            self._index += 1
+            return Frame(rgb, log_ns / 1e9, self._index - 1)
+        return None
+
+    def camera_matrix(self) -> np.ndarray | None:
+        return self._k
+
+
+class VideoSource(Source):
+    def __init__(self, path: Path):
+        super().__init__()
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise SourceError(f'video not found: {self.path}')
+        self.rewind()
+        self.fps = self._capture.get(cv2.CAP_PROP_FPS) or 30.0
+
+    def rewind(self) -> None:
+        self._capture = cv2.VideoCapture(str(self.path))
+        if not self._capture.isOpened():
+            raise SourceError(f'OpenCV cannot open video {self.path}')
+        self._index = 0
+
+    def read(self) -> Frame | None:
+        ok, bgr = self._capture.read()
+        if not ok:
+            if self._index == 0:
+                raise SourceError(f'video {self.path} has no readable frame')
+            return None
+        self._index += 1
+        return Frame(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), (self._index - 1) / self.fps,
+                     self._index - 1)
+
+    def close(self) -> None:
+        self._capture.release()
+
+
+class FolderSource(Source):
+    def __init__(self, path: Path, *, fps: float = 10.0):
+        super().__init__()
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise SourceError(f'image folder not found: {self.path}')
+        self.files = sorted(p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not self.files:
+            raise SourceError(f'image folder {self.path} holds no image '
+                              f'({", ".join(IMAGE_SUFFIXES)})')
+        self.fps = fps
+        self.rewind()
+
+    def rewind(self) -> None:
+        self._index = 0
+
+    def read(self) -> Frame | None:
+        while self._index < len(self.files):
+            file = self.files[self._index]
+            self._index += 1
+            bgr = cv2.imread(str(file), cv2.IMREAD_COLOR)
+            if bgr is not None:
+                return Frame(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB),
+                             (self._index - 1) / self.fps, self._index - 1)
+        return None
+
+
+class DeviceSource(Source):
+    live = True
+
+    def __init__(self, device: int, *, clock):
+        super().__init__()
+        self._capture = cv2.VideoCapture(device)
+        if not self._capture.isOpened():
+            raise SourceError(f'OpenCV cannot open capture device {device}')
+        self.fps = self._capture.get(cv2.CAP_PROP_FPS) or None
+        self._clock = clock
+        self._index = 0
+
+    def read(self) -> Frame | None:
+        ok, bgr = self._capture.read()
+        if not ok:
+            raise SourceError('capture device stopped delivering frames')
+        self._index += 1
+        return Frame(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), self._clock(), self._index - 1)
+
+    def close(self) -> None:
+        self._capture.release()
+
+
+class RealSenseSource(Source):
+    """The colour stream of an Intel RealSense, with the SDK's factory intrinsics."""
+
+    live = True
+
+    def __init__(self, *, width: int, height: int, fps: int, clock):
+        super().__init__()
+        try:
+            import pyrealsense2 as rs
+        except ImportError as exc:
+            raise SourceError('the RealSense source needs the Intel RealSense SDK: '
+                              "pip install 'activeloc_ros[realsense]' (pyrealsense2)") from exc
+        if len(rs.context().query_devices()) == 0:
+            raise SourceError('no RealSense device is connected')
+        self._rs = rs
+        self._pipeline = rs.pipeline()
+        config = rs.config()
+        config.enable_stream(rs.stream.color, width, height, rs.format.rgb8, fps)
+        try:
+            profile = self._pipeline.start(config)
+        except RuntimeError as exc:
+            raise SourceError(f'RealSense refused {width}x{height}@{fps} rgb8: {exc}') from exc
+        intr = profile.get_stream(rs.stream.color).as_video_stream_profile().get_intrinsics()
+        self._k = np.array([[intr.fx, 0, intr.ppx], [0, intr.fy, intr.ppy], [0, 0, 1.0]])
+        self.fps = float(fps)
+        self._clock = clock
+        self._index = 0
+
+    def read(self) -> Frame | None:
+        try:
+            frames = self._pipeline.wait_for_frames(timeout_ms=2000)
+        except RuntimeError as exc:
+            raise SourceError(f'RealSense stopped delivering frames: {exc}') from exc
+        color = frames.get_color_frame()
+        self._index += 1
+        return Frame(np.asanyarray(color.get_data()).copy(), self._clock(), self._index - 1)
+
+    def camera_matrix(self) -> np.ndarray | None:
+        return self._k
+
+    def close(self) -> None:
+        self._pipeline.stop()
+
+
+def default_bag() -> Path:
+    """The bundled sample bag."""
+    return share_path('bags/vtest')
+
+
+def open_source(spec: str, *, clock, image_topic: str = '', folder_fps: float = 10.0,
+                realsense_size: tuple[int, int] = (640, 480), realsense_fps: int = 30) -> Source:
+    """Open the source a spec string names; raises SourceError with the reason if it cannot."""
+    kind, _, arg = spec.partition(':')
+    if kind == 'bag' and arg:
+        return BagSource(Path(arg), topic=image_topic)
+    if kind == 'video' and arg:
+        return VideoSource(Path(arg))
+    if kind == 'folder' and arg:
+        return FolderSource(Path(arg), fps=folder_fps)
+    if kind == 'device':
+        try:
+            return DeviceSource(int(arg or 0), clock=clock)
+        except ValueError as exc:
+            raise SourceError(f'device source needs a number, got {arg!r}') from exc
+    if kind == 'realsense':
+        return RealSenseSource(width=realsense_size[0], height=realsense_size[1],
+                               fps=realsense_fps, clock=clock)
+    raise SourceError(f'unknown camera source {spec!r}: use bag:PATH, video:PATH, '
+                      'folder:PATH, device:N or realsense')
+
+
+class Pacer:
+    """When each recorded frame is due on the wall clock: replays the source's timing at `rate`.
+
+    Frame stamps that go backwards (a loop restart) re-anchor the schedule.
+    """
+
+    def __init__(self, rate: float = 1.0):
+        if not rate > 0:
+            raise SourceError(f'replay rate must be > 0, got {rate}')
+        self.rate = rate
+        self._anchor: tuple[float, float] | None = None   # (stamp, wall time)
+        self._last_stamp = -math.inf
+
+    def due(self, stamp: float, now: float) -> float:
+        if self._anchor is None or stamp < self._last_stamp:
+            self._anchor = (stamp, now)
+        self._last_stamp = stamp
+        first_stamp, first_wall = self._anchor
+        return first_wall + (stamp - first_stamp) / self.rate

@@ -1,0 +1,37 @@
+"""Shared fixtures: a per-test rclpy Context, an isolated DDS domain, the data root."""
+import os
+from pathlib import Path
+
+import pytest
+
+# Before any rclpy import: keep DDS traffic on this machine and away from other runs.
+os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 100))
+
+REPO = Path(__file__).resolve().parents[1]
+PARAMS = REPO / 'params'
+
+
+@pytest.fixture
+def context():
+    import rclpy
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+def params_args(node: str, *extra: str) -> list[str]:
+    """cli_args loading the real params file of `node`, then `-p name:=value` extras."""
+    args = ['--ros-args', '--params-file', str(PARAMS / f'{node}.yaml')]
+    for item in extra:
+        args += ['-p', item]
+    return args
+
+
+@pytest.fixture(scope='session')
+def data_root() -> Path:
+    root = Path(os.environ.get('ACTIVELOC_DATA', REPO.parent / 'shared' / 'data' / 'sequences'))
+    if not root.is_dir():
+        pytest.skip(f'annotated sequences not found at {root} (set ACTIVELOC_DATA)')
+    return root
