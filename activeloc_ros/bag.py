@@ -17,6 +17,8 @@ import sys
 import tempfile
 from typing import Iterator
 
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
 import numpy as np
 
 from activeloc_ros.errors import SourceError
@@ -73,14 +75,11 @@ def mcap_files(path: Path) -> list[Path]:
     return [path]
 
 
-def _reader_errors():
-    from mcap.exceptions import McapError
-    return (McapError, OSError, ValueError, EOFError, KeyError, IndexError)
+READER_ERRORS = (McapError, OSError, ValueError, EOFError, KeyError, IndexError)
 
 
 def bag_facts(path: Path) -> BagFacts:
     """Read a bag's summary: topics, types, counts, time span. Raises SourceError if unusable."""
-    from mcap.reader import make_reader
     files = mcap_files(path)
     counts: dict[tuple[str, str], int] = {}
     start, end = None, None
@@ -103,7 +102,7 @@ def bag_facts(path: Path) -> BagFacts:
                         start, stats.message_start_time)
                     end = stats.message_end_time if end is None else max(
                         end, stats.message_end_time)
-        except _reader_errors() as exc:
+        except READER_ERRORS as exc:
             raise SourceError(f'cannot read bag file {file}: {type(exc).__name__}: {exc}') from exc
     topics = [TopicFacts(name, msgtype, count) for (name, msgtype), count in sorted(counts.items())]
     return BagFacts(Path(path), files, sum(f.stat().st_size for f in files),
@@ -128,7 +127,6 @@ def choose_image_topic(facts: BagFacts, topic: str = '') -> TopicFacts:
 
 def read_messages(path: Path, topics: list[str]) -> Iterator[tuple[str, str, int, object]]:
     """Yield (topic, msgtype, log_time_ns, message) in log-time order, deserialised."""
-    from mcap.reader import make_reader
     store = _typestore()
     for file in mcap_files(path):
         try:
@@ -138,7 +136,7 @@ def read_messages(path: Path, topics: list[str]) -> Iterator[tuple[str, str, int
                                                                      log_time_order=True):
                     msg = store.deserialize_cdr(message.data, schema.name)
                     yield channel.topic, schema.name, message.log_time, msg
-        except _reader_errors() as exc:
+        except READER_ERRORS as exc:
             raise SourceError(f'cannot read bag file {file}: {type(exc).__name__}: {exc}') from exc
 
 

@@ -84,8 +84,13 @@ class BagSource(Source):
         return None
 
     def rewind(self) -> None:
+        self.close()
         self._messages: Iterator = bag.read_messages(self.path, [self.topic.name])
         self._index = 0
+
+    def close(self) -> None:
+        if getattr(self, '_messages', None) is not None:
+            self._messages.close()
 
     def read(self) -> Frame | None:
         for _, msgtype, log_ns, msg in self._messages:
