@@ -1,0 +1,430 @@
+"""Passive benchmark: with the camera fixed, does the map's peak fall on the annotated actor?
+
+Every sequence is streamed once; each frame goes to every method (the perception model
+under each requested encoder / ablation, and the baselines), which returns a 14x14 map.
+Per frame with ground truth (inside `eval_frames`, from frame `--warmup` on):
+- hit: the peak cell's centre lies inside an annotated actor's box grown by one grid cell
+  (any actor when several are annotated); the centre baseline uses the image centre itself;
+- AUC-Judd (MIT saliency benchmark definition, `metrics.auc_judd`) of the 14x14 map
+  against the grid cells holding the actors' box centres.
+Baselines: 'random' (a seeded uniform-noise map: the chance level of both scores),
+'centre' (a centred Gaussian, sigma = 0.25 of the width/height; AUC only sees its ranking,
+which is the distance from the image centre in width/height-normalised units) and
+'framediff' (mean absolute difference of consecutive 5x5-blurred grey frames per cell).
+
+    python -m activeloc_ros.bench passive --data DIR [--encoder E ...] [--ablations A ...]
+"""
+import argparse
+from dataclasses import dataclass, field
+import json
+import os
+from pathlib import Path
+import sys
+import tempfile
+import time
+from typing import Callable, Protocol
+import zlib
+
+import cv2
+import numpy as np
+
+from activeloc_ros import data, metrics
+from activeloc_ros.errors import ActivelocError, DataError
+from activeloc_ros.progress import Progress
+
+GRID = (14, 14)
+KIND_ORDER = {'static': 0, 'pan': 1, 'moving': 2}
+# Paper Table 3 rows, as PerceptionConfig overrides (see `_ablation_overrides`).
+ABLATIONS = ('full', 'predlearn', 'no_norm_motion', 'no_attn')
+
+
+class Method(Protocol):
+    """Something that turns each frame of a sequence into a map over the grid."""
+
+    name: str
+
+    def reset(self, sequence: data.Sequence) -> None: ...
+
+    def step(self, image: np.ndarray) -> np.ndarray: ...
+
+    def peak(self, heat: np.ndarray, image_wh: tuple[int, int]) -> tuple[float, float]: ...
+
+
+class RandomMap:
+    """Uniform noise, seeded per sequence: the chance level of the hit rate and the AUC."""
+
+    name = 'random'
+
+    def __init__(self, seed: int = 0) -> None:
+        self.seed = seed
+        self.rng = np.random.default_rng(seed)
+
+    def reset(self, sequence: data.Sequence) -> None:
+        self.rng = np.random.default_rng([self.seed, zlib.crc32(sequence.name.encode())])
+
+    def step(self, image: np.ndarray) -> np.ndarray:
+        heat = self.rng.random(GRID)
+        return heat / heat.sum()
+
+    def peak(self, heat: np.ndarray, image_wh: tuple[int, int]) -> tuple[float, float]:
+        return metrics.peak_point(heat, image_wh)
+
+
+class CentreBias:
+    """Always the image centre; its map is a centred Gaussian."""
+
+    name = 'centre'
+
+    def __init__(self) -> None:
+        self.heat = metrics.centre_gaussian(GRID)
+
+    def reset(self, sequence: data.Sequence) -> None:
+        pass
+
+    def step(self, image: np.ndarray) -> np.ndarray:
+        return self.heat
+
+    def peak(self, heat: np.ndarray, image_wh: tuple[int, int]) -> tuple[float, float]:
+        return image_wh[0] / 2.0, image_wh[1] / 2.0
+
+
+class FrameDiff:
+    """Per-cell mean |I_t - I_{t-1}| of blurred grey frames (a constant map on frame 0)."""
+
+    name = 'framediff'
+
+    def __init__(self) -> None:
+        self.previous: np.ndarray | None = None
+
+    def reset(self, sequence: data.Sequence) -> None:
+        self.previous = None
+
+    def step(self, image: np.ndarray) -> np.ndarray:
+        grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32)
+        grey = cv2.GaussianBlur(grey, (5, 5), 0)
+        previous, self.previous = self.previous, grey
+        if previous is None or previous.shape != grey.shape:
+            return np.full(GRID, 1.0 / (GRID[0] * GRID[1]), np.float32)
+        diff = cv2.absdiff(grey, previous)
+        heat = cv2.resize(diff, (GRID[1], GRID[0]), interpolation=cv2.INTER_AREA)
+        total = float(heat.sum())
+        return heat / total if total > 0 else np.full(GRID, 1.0 / heat.size, np.float32)
+
+    def peak(self, heat: np.ndarray, image_wh: tuple[int, int]) -> tuple[float, float]:
+        return metrics.peak_point(heat, image_wh)
+
+
+def _ablation_overrides(ablation: str) -> dict:
+    """PerceptionConfig fields for each paper Table 3 row."""
+    table = {
+        'full': {},
+        # ECCV'20-era predictive learning: raw motion weighting and no attention loss
+        'predlearn': {'normalized_motion': False, 'attn_loss': False},
+        'no_norm_motion': {'normalized_motion': False},
+        'no_attn': {'attn_loss': False},
+    }
+    if ablation not in table:
+        raise ActivelocError(f'unknown ablation {ablation!r}; choose from {", ".join(table)}')
+    return table[ablation]
+
+
+class ModelMethod:
+    """The perception model (`SurpriseModel`), rebuilt fresh for every sequence."""
+
+    def __init__(self, encoder: str | None, ablation: str, *, seed: int = 0,
+                 extra: dict | None = None) -> None:
+        from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
+        settings = dict(extra or {})
+        if encoder:
+            settings['encoder'] = encoder
+        settings.update(_ablation_overrides(ablation))
+        self.config = PerceptionConfig.from_dict(settings)
+        self.encoder = getattr(self.config, 'encoder', encoder)
+        self.ablation = ablation
+        self.name = f'model:{self.encoder}/{ablation}'
+        self.seed = seed
+        self.factory: Callable[[], object] = lambda: SurpriseModel(self.config)
+        self.model = self._build()
+
+    def _build(self) -> object:
+        _seed_everything(self.seed)
+        return self.factory()
+
+    def reset(self, sequence: data.Sequence) -> None:
+        self.model = self._build()
+
+    def step(self, image: np.ndarray) -> np.ndarray:
+        return np.asarray(self.model.step(image).surprise_map, dtype=np.float64)
+
+    def peak(self, heat: np.ndarray, image_wh: tuple[int, int]) -> tuple[float, float]:
+        return metrics.peak_point(heat, image_wh)
+
+
+def _seed_everything(seed: int) -> None:
+    import random
+
+    import torch
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+@dataclass
+class Tally:
+    """Per-frame scores of one method on one sequence."""
+
+    hits: list[bool] = field(default_factory=list)
+    aucs: list[float] = field(default_factory=list)
+    seconds: float = 0.0
+    steps: int = 0
+
+    def summary(self) -> dict:
+        return {'frames': len(self.hits),
+                'hit_rate': float(np.mean(self.hits)) if self.hits else float('nan'),
+                'auc_judd': metrics.summarise(self.aucs).mean,
+                'ms_per_frame': 1000.0 * self.seconds / self.steps if self.steps else None}
+
+
+def run_sequence(sequence: data.Sequence, methods: list[Method], *, max_frames: int | None,
+                 warmup: int, progress: Progress | None = None,
+                 frames_out: list | None = None) -> tuple[dict[str, Tally], float]:
+    """Stream one sequence through every method; returns the tallies and the mean chance
+    hit rate of its scored frames."""
+    tallies = {m.name: Tally() for m in methods}
+    for m in methods:
+        m.reset(sequence)
+    chance = []
+    image_wh = (sequence.width, sequence.height)
+    cell_wh = metrics.cell_size(GRID, image_wh)
+    for sample in sequence.frames(max_frames=max_frames):
+        truth = sample.truth
+        scored = truth.scored and bool(truth.actors) and sample.index >= warmup
+        if scored:
+            chance.append(metrics.chance_hit_rate(truth.actors, GRID, image_wh))
+            fixations = metrics.fixation_map([b.centre for b in truth.actors], GRID, image_wh)
+        for m in methods:
+            start = time.perf_counter()
+            heat = m.step(sample.image)
+            tally = tallies[m.name]
+            tally.seconds += time.perf_counter() - start
+            tally.steps += 1
+            if not scored:
+                continue
+            point = m.peak(heat, image_wh)
+            hit = metrics.is_hit(point, truth.actors, cell_wh=cell_wh)
+            auc = metrics.auc_judd(heat, fixations)
+            tally.hits.append(hit)
+            tally.aucs.append(auc)
+            if frames_out is not None:
+                frames_out.append({'sequence': sequence.name, 'frame': sample.index,
+                                   'method': m.name, 'hit': hit, 'auc_judd': auc,
+                                   'peak_xy': [round(point[0], 1), round(point[1], 1)]})
+        if progress is not None:
+            progress.update(note=sequence.name)
+    return tallies, float(np.mean(chance)) if chance else float('nan')
+
+
+def evaluate(sequences: list[data.Sequence], methods: list[Method], *,
+             max_frames: int | None = None, warmup: int = 1, quiet: bool = False,
+             keep_frames: bool = False) -> dict:
+    """Run every method over every sequence; a sequence whose frames turn out bad is
+    dropped for all methods and listed under 'skipped'."""
+    total = sum(len(s) if max_frames is None else min(len(s), max_frames) for s in sequences)
+    progress = None if quiet else Progress(total, 'passive')
+    per_seq: dict[str, dict[str, Tally]] = {}
+    info: dict[str, dict] = {}
+    skipped: list[tuple[str, str]] = []
+    frames_out: list | None = [] if keep_frames else None
+    for seq in sequences:
+        mark = len(frames_out) if frames_out is not None else 0
+        try:
+            tallies, chance = run_sequence(seq, methods, max_frames=max_frames,
+                                           warmup=warmup, progress=progress,
+                                           frames_out=frames_out)
+        except DataError as err:
+            skipped.append((seq.name, str(err)))
+            if frames_out is not None:
+                del frames_out[mark:]
+            print(f'skipping {seq.name}: {err}', file=sys.stderr)
+            continue
+        per_seq[seq.name] = tallies
+        info[seq.name] = {'camera': seq.camera_kind, 'chance_hit_rate': chance}
+    if progress is not None:
+        progress.close()
+    results = []
+    for m in methods:
+        seqs = {}
+        hits: list[bool] = []
+        aucs: list[float] = []
+        seconds, steps = 0.0, 0
+        for name, tallies in per_seq.items():
+            t = tallies[m.name]
+            seqs[name] = {**info[name], **t.summary()}
+            hits += t.hits
+            aucs += t.aucs
+            seconds += t.seconds
+            steps += t.steps
+        rates = [s['hit_rate'] for s in seqs.values() if s['frames']]
+        row = {'method': m.name, 'frames': len(hits),
+               'hit_rate': float(np.mean(hits)) if hits else float('nan'),
+               'hit_rate_seq_mean': float(np.mean(rates)) if rates else float('nan'),
+               'auc_judd': metrics.summarise(aucs).mean,
+               'ms_per_frame': 1000.0 * seconds / steps if steps else None,
+               'sequences': seqs}
+        if isinstance(m, ModelMethod):
+            row.update(encoder=m.encoder, ablation=m.ablation)
+        results.append(row)
+    chance = [i['chance_hit_rate'] for i in info.values()]
+    return {'methods': results, 'skipped': skipped,
+            'chance_hit_rate_seq_mean': float(np.nanmean(chance)) if chance else float('nan'),
+            'frames': frames_out}
+
+
+def _pct(value: float) -> str:
+    return '-' if value != value else f'{100.0 * value:.1f}'
+
+
+def markdown(result: dict) -> str:
+    """Two tables: the overall row per method, then hit % / AUC per sequence."""
+    rows = result['methods']
+    lines = ['| method | frames | hit % (frames) | hit % (seq mean) | AUC-Judd % | ms/frame |',
+             '|---|---:|---:|---:|---:|---:|']
+    for r in rows:
+        ms = '-' if r['ms_per_frame'] is None else f'{r["ms_per_frame"]:.1f}'
+        lines.append(f'| {r["method"]} | {r["frames"]} | {_pct(r["hit_rate"])} | '
+                     f'{_pct(r["hit_rate_seq_mean"])} | {_pct(r["auc_judd"])} | {ms} |')
+    names = list(rows[0]['sequences']) if rows else []
+    if names:
+        first = rows[0]['sequences']
+        lines += ['', 'Per sequence: hit % / AUC-Judd % '
+                  '(chance hit % = share of cells whose centre would hit)', '',
+                  '| method | ' + ' | '.join(f'{n} ({first[n]["camera"]}, '
+                                               f'{first[n]["frames"]} fr)' for n in names)
+                  + ' |',
+                  '|---|' + '---:|' * len(names),
+                  '| chance hit % | ' + ' | '.join(_pct(first[n]['chance_hit_rate'])
+                                                   for n in names) + ' |']
+        for r in rows:
+            cells = [f'{_pct(r["sequences"][n]["hit_rate"])} / '
+                     f'{_pct(r["sequences"][n]["auc_judd"])}' for n in names]
+            lines.append(f'| {r["method"]} | ' + ' | '.join(cells) + ' |')
+    for name, reason in result['skipped']:
+        lines.append(f'\nskipped {name}: {reason}')
+    return '\n'.join(lines)
+
+
+def write_atomic(path: Path, text: str) -> None:
+    """Write through a temporary file in the same folder, then rename over `path`."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f'.{path.name}.', suffix='.tmp')
+    try:
+        with os.fdopen(fd, 'w', encoding='utf-8') as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _split(values: list[str] | None) -> list[str]:
+    return [v for item in values or [] for v in item.split(',') if v]
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog='python -m activeloc_ros.bench passive',
+        description='Fixed camera: hit rate of the map peak on the annotated actor and '
+                    'AUC-Judd of the 14x14 map, for the perception model and the random, '
+                    'centre and frame-differencing baselines.')
+    p.add_argument('--data', help=f'sequence root (default ${data.ENV_VAR} or '
+                                  '../shared/data/sequences beside the repo)')
+    p.add_argument('--encoder', nargs='+', metavar='NAME',
+                   help='encoder(s) of the model, one row each (default: the config default)')
+    p.add_argument('--ablations', nargs='+', metavar='NAME', default=['full'],
+                   help=f'model variants, one row each: {", ".join(ABLATIONS)} or all '
+                        '(default: full)')
+    p.add_argument('--set', nargs='+', metavar='KEY=JSON', default=[],
+                   help='extra PerceptionConfig fields for every model row, e.g. lr=1e-4')
+    p.add_argument('--no-model', action='store_true', help='baselines only')
+    p.add_argument('--sequences', nargs='+', metavar='NAME', help='only these sequences')
+    p.add_argument('--camera', nargs='+', choices=sorted(KIND_ORDER), metavar='KIND',
+                   help='only these camera kinds: static, pan, moving')
+    p.add_argument('--max-frames', type=int, metavar='N', help='first N frames of each')
+    p.add_argument('--warmup', type=int, default=1, metavar='N',
+                   help='frames not scored at the start of each sequence (default 1)')
+    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--json', action='store_true', help='one JSON object per method on stdout')
+    p.add_argument('--out', metavar='DIR',
+                   help='write passive.json (with per-frame scores) and passive.md there')
+    p.add_argument('--quiet', action='store_true', help='no progress on stderr')
+    return p
+
+
+def _extra_settings(items: list[str]) -> dict:
+    extra = {}
+    for item in items:
+        key, sep, value = item.partition('=')
+        if not sep or not key:
+            raise ActivelocError(f'--set expects KEY=VALUE, got {item!r}')
+        try:
+            extra[key] = json.loads(value)
+        except json.JSONDecodeError:
+            extra[key] = value
+    return extra
+
+
+def build_methods(args: argparse.Namespace) -> list[Method]:
+    methods: list[Method] = [RandomMap(args.seed), CentreBias(), FrameDiff()]
+    if args.no_model:
+        return methods
+    ablations = _split(args.ablations)
+    if 'all' in ablations:
+        ablations = list(ABLATIONS)
+    extra = _extra_settings(args.set)
+    for encoder in _split(args.encoder) or [None]:
+        for ablation in ablations:
+            methods.append(ModelMethod(encoder, ablation, seed=args.seed, extra=extra))
+    return methods
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    if args.max_frames is not None and args.max_frames < 1:
+        print('--max-frames must be >= 1', file=sys.stderr)
+        return 2
+    try:
+        root = data.resolve_data_root(args.data)
+        sequences, skipped = data.load_sequences(root, names=_split(args.sequences),
+                                                 cameras=args.camera)
+        methods = build_methods(args)
+    except ActivelocError as err:
+        print(f'error: {err}', file=sys.stderr)
+        return 2
+    for name, reason in skipped:
+        print(f'skipping {name}: {reason}', file=sys.stderr)
+    if not sequences:
+        print(f'error: no usable sequence under {root}', file=sys.stderr)
+        return 1
+    sequences.sort(key=lambda s: (KIND_ORDER[s.camera_kind], s.name))
+    try:
+        result = evaluate(sequences, methods, max_frames=args.max_frames,
+                          warmup=args.warmup, quiet=args.quiet, keep_frames=bool(args.out))
+    except ActivelocError as err:
+        print(f'error: {err}', file=sys.stderr)
+        return 2
+    result['skipped'] = skipped + result['skipped']
+    result['settings'] = {'data': str(root), 'max_frames': args.max_frames,
+                          'warmup': args.warmup, 'seed': args.seed, 'grid': list(GRID),
+                          'set': args.set}
+    table = markdown(result)
+    if args.json:
+        for row in result['methods']:
+            print(json.dumps({**row, 'skipped': result['skipped'],
+                              'settings': result['settings']}))
+    else:
+        print(table)
+    if args.out:
+        out = Path(args.out)
+        write_atomic(out / 'passive.json', json.dumps(result, indent=1) + '\n')
+        write_atomic(out / 'passive.md', table + '\n')
+    return 0

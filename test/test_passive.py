@@ -1,0 +1,200 @@
+"""Passive benchmark: baselines on synthetic sequences, the CLI, the model adapter."""
+from dataclasses import dataclass
+import json
+from pathlib import Path
+import sys
+import types
+
+import cv2
+import numpy as np
+import pytest
+
+from activeloc_ros import data
+from activeloc_ros.bench import passive
+
+W, H, SIDE = 140, 112, 12  # cells of 10 x 8 pixels
+
+
+def square_position(i: int) -> tuple[int, int]:
+    """Top-left corner of the moving square in frame i: a diagonal sweep."""
+    return 10 + 9 * i, 8 + 6 * i
+
+
+def make_moving_square(root: Path, name: str = 'square', n: int = 10) -> Path:
+    """Textured static background, a bright square moving across it; GT = the square."""
+    path = root / name
+    (path / 'img').mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    background = cv2.GaussianBlur(rng.integers(0, 120, (H, W, 3), dtype=np.uint8), (7, 7), 0)
+    rows = []
+    for i in range(n):
+        img = background.copy()
+        x, y = square_position(i)
+        img[y:y + SIDE, x:x + SIDE] = 255
+        cv2.imwrite(str(path / 'img' / f'{i:03d}.png'), img)
+        rows.append(f'{x},{y},{SIDE},{SIDE}')
+    meta = {'W': W, 'H': H, 'frames': n, 'camera': 'STATIC', 'frames_glob': 'img/*.png'}
+    (path / 'meta.json').write_text(json.dumps(meta))
+    (path / 'gt_xywh.txt').write_text('\n'.join(rows) + '\n')
+    return path
+
+
+def test_frame_differencing_finds_the_moving_square(tmp_path):
+    seq = data.load_sequence(make_moving_square(tmp_path))
+    method = passive.FrameDiff()
+    method.reset(seq)
+    tallies, _ = passive.run_sequence(seq, [method], max_frames=None, warmup=1)
+    assert tallies['framediff'].hits == [True] * 9
+    # the peak itself sits on the square's path, not just within the grown box
+    method.reset(seq)
+    frames = list(seq.frames())
+    method.step(frames[4].image)
+    heat = method.step(frames[5].image)
+    x, y = method.peak(heat, (W, H))
+    (x0, y0), (x1, y1) = square_position(4), square_position(5)
+    assert x0 <= x <= x1 + SIDE and y0 <= y <= y1 + SIDE
+    assert heat.shape == (14, 14) and heat.sum() == pytest.approx(1.0)
+
+
+def test_centre_and_random_baselines(tmp_path):
+    seq = data.load_sequence(make_moving_square(tmp_path))
+    centre, rand = passive.CentreBias(), passive.RandomMap(seed=3)
+    assert centre.peak(centre.step(np.zeros((H, W, 3), np.uint8)), (W, H)) == (70.0, 56.0)
+    tallies, chance = passive.run_sequence(seq, [centre, rand], max_frames=None, warmup=0)
+    # the square passes the centre around frames 5-6 only
+    assert 1 <= sum(tallies['centre'].hits) <= 4
+    assert len(tallies['random'].aucs) == 10 and 0 < chance < 0.1
+    again, _ = passive.run_sequence(seq, [passive.RandomMap(seed=3)], max_frames=None,
+                                    warmup=0)
+    assert again['random'].hits == tallies['random'].hits  # seeded
+
+
+def test_cli_markdown_json_and_atomic_out(tmp_path, capsys):
+    make_moving_square(tmp_path / 'seqs', 'a_square')
+    make_moving_square(tmp_path / 'seqs', 'b_square', n=6)
+    bad = make_moving_square(tmp_path / 'seqs', 'c_broken')
+    (bad / 'gt_xywh.txt').write_text('1,2,3\n')
+    out = tmp_path / 'out'
+    code = passive.main(['--data', str(tmp_path / 'seqs'), '--no-model', '--quiet',
+                         '--out', str(out)])
+    assert code == 0
+    text = capsys.readouterr()
+    assert '| framediff | 14 | 100.0 |' in text.out
+    assert 'c_broken' in text.err and 'gt_xywh.txt' in text.err
+    saved = json.loads((out / 'passive.json').read_text())
+    assert [m['method'] for m in saved['methods']] == ['random', 'centre', 'framediff']
+    assert saved['skipped'][0][0] == 'c_broken'
+    assert {f['sequence'] for f in saved['frames']} == {'a_square', 'b_square'}
+    assert (out / 'passive.md').read_text().startswith('| method |')
+    assert not [p for p in out.iterdir() if p.name.endswith('.tmp')]
+
+    code = passive.main(['--data', str(tmp_path / 'seqs'), '--no-model', '--quiet',
+                         '--json', '--sequences', 'b_square', '--max-frames', '4'])
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert code == 0 and len(rows) == 3
+    diff = rows[2]
+    assert diff['method'] == 'framediff' and diff['frames'] == 3
+    assert diff['sequences']['b_square']['hit_rate'] == 1.0
+
+
+def test_cli_errors(tmp_path, capsys):
+    assert passive.main(['--data', str(tmp_path / 'absent'), '--no-model']) == 2
+    assert 'not a directory' in capsys.readouterr().err
+    assert passive.main(['--data', str(tmp_path), '--no-model']) == 1
+    with pytest.raises(SystemExit) as exc:
+        passive.main(['--help'])
+    assert exc.value.code == 0
+    assert '--ablations' in capsys.readouterr().out
+
+
+def test_bad_frames_midway_drop_the_sequence(tmp_path):
+    path = make_moving_square(tmp_path, 'square')
+    (path / 'img' / '005.png').write_bytes(b'broken')
+    seq = data.load_sequence(path)
+    result = passive.evaluate([seq], [passive.FrameDiff()], quiet=True, keep_frames=True)
+    assert result['skipped'][0][0] == 'square' and '005.png' in result['skipped'][0][1]
+    assert result['methods'][0]['frames'] == 0 and result['frames'] == []
+
+
+@dataclass
+class FakeConfig:
+    encoder: str = 'fake_encoder'
+    normalized_motion: bool = True
+    attn_loss: bool = True
+
+    @classmethod
+    def from_dict(cls, d: dict) -> 'FakeConfig':
+        return cls(**d)
+
+
+class FakeModel:
+    """Peaks wherever the frame is brightest; counts its instances."""
+
+    built = 0
+
+    def __init__(self, cfg: FakeConfig) -> None:
+        self.cfg = cfg
+        FakeModel.built += 1
+
+    def step(self, frame: np.ndarray):
+        grey = frame.mean(axis=2).astype(np.float32)
+        heat = cv2.resize(grey, (14, 14), interpolation=cv2.INTER_AREA)
+        return types.SimpleNamespace(surprise_map=heat / heat.sum())
+
+    def reset(self) -> None:
+        pass
+
+
+@pytest.fixture
+def fake_model(monkeypatch):
+    module = types.ModuleType('activeloc_ros.perception.model')
+    module.PerceptionConfig = FakeConfig
+    module.SurpriseModel = FakeModel
+    monkeypatch.setitem(sys.modules, 'activeloc_ros.perception.model', module)
+    FakeModel.built = 0
+    return module
+
+
+def test_model_rows_per_encoder_and_ablation(tmp_path, capsys, fake_model):
+    make_moving_square(tmp_path, 'square')
+    code = passive.main(['--data', str(tmp_path), '--quiet', '--json',
+                         '--encoder', 'fake_encoder', '--ablations', 'all'])
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert code == 0
+    models = [r for r in rows if r['method'].startswith('model:')]
+    assert [r['ablation'] for r in models] == list(passive.ABLATIONS)
+    assert all(r['encoder'] == 'fake_encoder' and r['hit_rate'] == 1.0 for r in models)
+    # one model per row at start-up, then a fresh one per row for the sequence
+    assert FakeModel.built == 2 * len(passive.ABLATIONS)
+
+
+@pytest.mark.parametrize('ablation, expected', [
+    ('full', {}),
+    ('predlearn', {'normalized_motion': False, 'attn_loss': False}),
+    ('no_norm_motion', {'normalized_motion': False}),
+    ('no_attn', {'attn_loss': False}),
+])
+def test_ablation_switches_reach_the_config(fake_model, ablation, expected):
+    method = passive.ModelMethod(None, ablation)
+    config = method.config
+    for key in ('normalized_motion', 'attn_loss'):
+        assert getattr(config, key) is expected.get(key, True)
+    assert method.name == f'model:fake_encoder/{ablation}'
+
+
+def test_unknown_ablation_is_an_error(fake_model, tmp_path, capsys):
+    make_moving_square(tmp_path, 'square')
+    assert passive.main(['--data', str(tmp_path), '--ablations', 'nope']) == 2
+    assert 'unknown ablation' in capsys.readouterr().err
+
+
+REAL_ROOT = data.default_data_root()
+
+
+@pytest.mark.skipif(REAL_ROOT is None or not REAL_ROOT.is_dir(), reason='no real sequences')
+def test_baselines_on_a_real_static_sequence(capsys):
+    code = passive.main(['--data', str(REAL_ROOT), '--no-model', '--quiet', '--json',
+                         '--sequences', 'otb_crossing', '--max-frames', '30'])
+    rows = {r['method']: r for r in map(json.loads, capsys.readouterr().out.splitlines())}
+    assert code == 0 and rows['framediff']['frames'] == 29
+    assert rows['framediff']['hit_rate'] > rows['random']['hit_rate']
