@@ -265,12 +265,19 @@ def evaluate(sequences: list[data.Sequence], methods: list[Method], *,
             seconds += t.seconds
             steps += t.steps
         rates = [s['hit_rate'] for s in seqs.values() if s['frames']]
+        by_camera = {}
+        for kind in KIND_ORDER:
+            kind_hits = [h for name, tallies in per_seq.items()
+                         if info[name]['camera'] == kind for h in tallies[m.name].hits]
+            if any(info[name]['camera'] == kind for name in per_seq):
+                by_camera[kind] = {'frames': len(kind_hits), 'hit_rate': (
+                    float(np.mean(kind_hits)) if kind_hits else float('nan'))}
         row = {'method': m.name, 'frames': len(hits),
                'hit_rate': float(np.mean(hits)) if hits else float('nan'),
                'hit_rate_seq_mean': float(np.mean(rates)) if rates else float('nan'),
                'auc_judd': metrics.summarise(aucs).mean,
                'ms_per_frame': 1000.0 * seconds / steps if steps else None,
-               'sequences': seqs}
+               'by_camera': by_camera, 'sequences': seqs}
         if isinstance(m, ModelMethod):
             row.update(encoder=m.encoder, ablation=m.ablation)
         results.append(row)
@@ -285,29 +292,32 @@ def _pct(value: float) -> str:
 
 
 def markdown(result: dict) -> str:
-    """Two tables: the overall row per method, then hit % / AUC per sequence."""
+    """The overall row per method, then hit % / AUC-Judd % per sequence (one row each)."""
     rows = result['methods']
-    lines = ['| method | frames | hit % (frames) | hit % (seq mean) | AUC-Judd % | ms/frame |',
-             '|---|---:|---:|---:|---:|---:|']
+    kinds = [k for k in KIND_ORDER if rows and k in rows[0]['by_camera']]
+    head = ['method', 'frames', 'hit %', 'hit % (seq mean)', 'AUC-Judd %']
+    head += [f'hit % {k}' for k in kinds] + ['ms/frame']
+    lines = ['| ' + ' | '.join(head) + ' |', '|---|' + '---:|' * (len(head) - 1)]
     for r in rows:
         ms = '-' if r['ms_per_frame'] is None else f'{r["ms_per_frame"]:.1f}'
-        lines.append(f'| {r["method"]} | {r["frames"]} | {_pct(r["hit_rate"])} | '
-                     f'{_pct(r["hit_rate_seq_mean"])} | {_pct(r["auc_judd"])} | {ms} |')
+        cells = [r['method'], str(r['frames']), _pct(r['hit_rate']),
+                 _pct(r['hit_rate_seq_mean']), _pct(r['auc_judd'])]
+        cells += [_pct(r['by_camera'][k]['hit_rate']) for k in kinds] + [ms]
+        lines.append('| ' + ' | '.join(cells) + ' |')
     names = list(rows[0]['sequences']) if rows else []
     if names:
         first = rows[0]['sequences']
-        lines += ['', 'Per sequence: hit % / AUC-Judd % '
-                  '(chance hit % = share of cells whose centre would hit)', '',
-                  '| method | ' + ' | '.join(f'{n} ({first[n]["camera"]}, '
-                                               f'{first[n]["frames"]} fr)' for n in names)
-                  + ' |',
-                  '|---|' + '---:|' * len(names),
-                  '| chance hit % | ' + ' | '.join(_pct(first[n]['chance_hit_rate'])
-                                                   for n in names) + ' |']
-        for r in rows:
-            cells = [f'{_pct(r["sequences"][n]["hit_rate"])} / '
-                     f'{_pct(r["sequences"][n]["auc_judd"])}' for n in names]
-            lines.append(f'| {r["method"]} | ' + ' | '.join(cells) + ' |')
+        lines += ['', 'Per sequence: hit % / AUC-Judd %; chance = hit % of a uniformly random '
+                  'cell', '',
+                  '| sequence | camera | frames | chance | '
+                  + ' | '.join(r['method'] for r in rows) + ' |',
+                  '|---|---|' + '---:|' * (len(rows) + 2)]
+        for n in names:
+            cells = [n, first[n]['camera'], str(first[n]['frames']),
+                     _pct(first[n]['chance_hit_rate'])]
+            cells += [f'{_pct(r["sequences"][n]["hit_rate"])} / '
+                      f'{_pct(r["sequences"][n]["auc_judd"])}' for r in rows]
+            lines.append('| ' + ' | '.join(cells) + ' |')
     for name, reason in result['skipped']:
         lines.append(f'\nskipped {name}: {reason}')
     return '\n'.join(lines)
