@@ -1,0 +1,248 @@
+"""The reactive controller: action pixel -> angular error -> PD -> guarded joint command.
+
+All times are explicit arguments in seconds (ROS time in the node, simulated time in the
+benchmark); nothing here reads a clock.
+"""
+import bisect
+from collections import deque
+from dataclasses import dataclass, field
+import math
+from typing import Sequence
+
+from activeloc_ros.control.braccio import (
+    ArmMapping, check_pose, clamp_to_limits, JointGuard, speed_deg_s)
+from activeloc_ros.control.geometry import angular_error, Intrinsics
+from activeloc_ros.control.pd import PDConfig, PDController
+from activeloc_ros.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """Everything the reactive controller needs besides the intrinsics.
+
+    :param watchdog_timeout: seconds without an accepted action location before holding.
+    :param step_delay_ms: the servos' ms per degree (10-30), which sets the speed limit.
+    :param min_peak: locations whose surprise peak is below this are ignored.
+    :param pose_slack: how far (s) a capture stamp may lie outside the joint-state history
+        and still be looked up in it; farther (e.g. a replayed bag's old stamps) uses the
+        newest pose.
+    """
+
+    pd: PDConfig = field(default_factory=PDConfig)
+    mapping: ArmMapping = field(default_factory=ArmMapping)
+    watchdog_timeout: float = 2.0
+    step_delay_ms: float = 20.0
+    min_peak: float = -math.inf
+    pose_slack: float = 0.5
+
+    def __post_init__(self):
+        if not math.isfinite(self.watchdog_timeout) or self.watchdog_timeout <= 0:
+            raise ConfigError(f'watchdog_timeout must be > 0 s, got {self.watchdog_timeout}')
+        if math.isnan(self.min_peak):
+            raise ConfigError('min_peak must not be NaN')
+        if not math.isfinite(self.pose_slack) or self.pose_slack < 0:
+            raise ConfigError(f'pose_slack must be >= 0 s, got {self.pose_slack}')
+        speed_deg_s(self.step_delay_ms)  # validates the range
+
+
+@dataclass(frozen=True)
+class Command:
+    """One joint command: six angles in degrees, the time it was made, why, and the capture
+    stamp of the action location that caused it (None for holds)."""
+
+    joints_deg: tuple[float, ...]
+    t: float
+    reason: str
+    stamp: float | None = None
+
+
+class PoseHistory:
+    """Recent (time, joints) samples of the arm, interpolated at a capture time."""
+
+    def __init__(self, horizon: float = 10.0):
+        self.horizon = horizon
+        self._t: deque[float] = deque()
+        self._q: deque[tuple[float, ...]] = deque()
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def add(self, t: float, joints_deg: Sequence[float]) -> bool:
+        """Record a sample; out-of-order or non-finite samples are refused (False)."""
+        q = tuple(float(v) for v in joints_deg)
+        if not math.isfinite(t) or not all(math.isfinite(v) for v in q):
+            return False
+        if self._t and t <= self._t[-1]:
+            return False
+        self._t.append(t)
+        self._q.append(q)
+        while self._t[0] < t - self.horizon:
+            self._t.popleft()
+            self._q.popleft()
+        return True
+
+    @property
+    def newest(self) -> tuple[float, tuple[float, ...]] | None:
+        return (self._t[-1], self._q[-1]) if self._t else None
+
+    def at(self, t: float, slack: float) -> tuple[float, ...] | None:
+        """Joints at ``t`` (linear interpolation); the newest sample when ``t`` lies more than
+        ``slack`` outside the history; None when empty."""
+        if not self._t:
+            return None
+        if not math.isfinite(t) or t < self._t[0] - slack or t > self._t[-1] + slack:
+            return self._q[-1]
+        times = list(self._t)
+        i = bisect.bisect_left(times, t)
+        if i == 0:
+            return self._q[0]
+        if i >= len(times):
+            return self._q[-1]
+        t0, t1 = times[i - 1], times[i]
+        w = (t - t0) / (t1 - t0)
+        return tuple(a + w * (b - a) for a, b in zip(self._q[i - 1], self._q[i]))
+
+
+class LatencyStats:
+    """Rolling frame-to-command latencies (seconds) with percentiles."""
+
+    def __init__(self, window: int = 1000):
+        self._values: deque[float] = deque(maxlen=window)
+        self.count = 0
+
+    def add(self, latency: float) -> None:
+        if math.isfinite(latency):
+            self._values.append(latency)
+            self.count += 1
+
+    def percentile(self, q: float) -> float:
+        """Nearest-rank percentile (q in [0, 100]) of the window; NaN when empty."""
+        if not self._values:
+            return math.nan
+        values = sorted(self._values)
+        rank = max(1, math.ceil(q / 100.0 * len(values)))
+        return values[rank - 1]
+
+    def summary(self) -> dict[str, float]:
+        return {'n': len(self._values), 'p50': self.percentile(50), 'p95': self.percentile(95)}
+
+
+class ReactiveController:
+    """Turns time-stamped action locations into joint commands the arm can follow.
+
+    States: ``'waiting'`` (no intrinsics yet), ``'idle'`` (no location yet), ``'tracking'``
+    and ``'holding'`` (the watchdog fired: the arm was told to stay where it is).
+    """
+
+    def __init__(self, config: ControllerConfig, *, start_deg: Sequence[float] | None = None,
+                 t0: float = 0.0):
+        self.config = config
+        self.mapping = config.mapping
+        self.pd = PDController(config.pd)
+        start = check_pose(start_deg if start_deg is not None else config.mapping.home_deg,
+                           'start pose')
+        self.guard = JointGuard(start, t0, step_delay_ms=config.step_delay_ms)
+        self.history = PoseHistory()
+        self.latency = LatencyStats()
+        self.intrinsics: Intrinsics | None = None
+        self.ignored: dict[str, int] = {}
+        self.commands = 0
+        self._last_capture = -math.inf
+        self._last_accept = -math.inf
+        self._holding = False
+
+    @property
+    def state(self) -> str:
+        if self.intrinsics is None:
+            return 'waiting'
+        if self._holding:
+            return 'holding'
+        return 'idle' if self._last_accept == -math.inf else 'tracking'
+
+    def set_intrinsics(self, intrinsics: Intrinsics) -> None:
+        self.intrinsics = intrinsics
+
+    def observe_joints(self, joints_deg: Sequence[float], t: float) -> None:
+        """The arm's measured pose at ``t``; before the first command it also seeds the guard,
+        so the first commands ramp from where the arm really is."""
+        pose = tuple(joints_deg)
+        if len(pose) != len(self.guard.last_deg) or not all(math.isfinite(q) for q in pose):
+            return
+        pose = clamp_to_limits(pose)  # a servo cannot be outside its range
+        if self.history.add(t, pose) and self.commands == 0:
+            self.guard.reset(pose, t)
+
+    def _ignore(self, reason: str) -> None:
+        self.ignored[reason] = self.ignored.get(reason, 0) + 1
+
+    def _pose_at(self, t: float) -> tuple[float, ...]:
+        pose = self.history.at(t, self.config.pose_slack)
+        return pose if pose is not None else self.guard.last_deg
+
+    def current_pose(self, t_now: float) -> tuple[float, ...]:
+        """Best estimate of where the arm is: a fresh measured state, else the last command."""
+        newest = self.history.newest
+        if newest is not None and t_now - newest[0] <= self.config.watchdog_timeout:
+            return newest[1]
+        return self.guard.last_deg
+
+    def on_location(self, u: float, v: float, t_capture: float, t_now: float, *,
+                    peak: float | None = None) -> Command | None:
+        """React to an action at pixel (u, v) of a frame captured at ``t_capture``.
+
+        Returns the command to send, or None when the location is ignored (no intrinsics,
+        NaN/absurd values, out-of-order stamps, weak peak); the reason is counted in
+        ``ignored``.
+        """
+        intr = self.intrinsics
+        if intr is None:
+            self._ignore('no camera info')
+            return None
+        if not (math.isfinite(t_capture) and math.isfinite(t_now)):
+            self._ignore('bad time')
+            return None
+        if not intr.contains(u, v):
+            self._ignore('outside image')
+            return None
+        if peak is not None and not (math.isfinite(peak) and peak >= self.config.min_peak):
+            self._ignore('weak or bad peak')
+            return None
+        if t_capture <= self._last_capture:
+            self._ignore('out of order')
+            return None
+        if self._holding or t_now - self._last_accept > self.config.watchdog_timeout:
+            self.pd.reset()  # a fresh start: no derivative across a gap
+        self._holding = False
+        self._last_capture = t_capture
+        self._last_accept = t_now
+
+        pose = self._pose_at(t_capture)
+        pan, tilt = self.mapping.pan_tilt(pose)
+        error = angular_error(u, v, intr, camera_tilt=tilt)
+        d_pan, d_tilt = self.pd.update(error, t_capture, camera=(pan, tilt))
+        if self.pd.within_dead_band(error):
+            target = self.guard.last_deg  # on target or noise: no new motion
+        else:
+            target = self.mapping.joints_deg(pan + d_pan, tilt + d_tilt)
+        return self._emit(target, t_now, 'track', t_capture)
+
+    def tick(self, t_now: float) -> Command | None:
+        """Watchdog: when locations stop arriving, one hold command, then silence."""
+        if (self.state == 'tracking' and math.isfinite(t_now)
+                and t_now - self._last_accept > self.config.watchdog_timeout):
+            self._holding = True
+            self.pd.reset()
+            return self.hold(t_now)
+        return None
+
+    def hold(self, t_now: float) -> Command:
+        """A command that keeps the arm where it is now (for the watchdog and for shutdown)."""
+        return self._emit(self.current_pose(t_now), t_now, 'hold', None)
+
+    def _emit(self, target: Sequence[float], t_now: float, reason: str,
+              stamp: float | None) -> Command:
+        joints = self.guard.limit(target, t_now)
+        self.commands += 1
+        if stamp is not None:
+            self.latency.add(t_now - stamp)
+        return Command(joints, t_now, reason, stamp)

@@ -1,0 +1,290 @@
+"""The reactive control maths without ROS: geometry, the PD law (Eq. 4), the watchdog."""
+import math
+
+import pytest
+
+from activeloc_ros.control import (
+    angular_error, ArmMapping, ControllerConfig, HOME_DEG, Intrinsics, LatencyStats,
+    PD_VARIANTS, PDConfig, PDController, PoseHistory, ReactiveController)
+from activeloc_ros.errors import ConfigError
+
+D435 = Intrinsics(fx=615.0, fy=615.0, cx=319.5, cy=239.5, width=640, height=480)
+DEG = math.radians(1.0)
+
+
+def test_core_imports_without_ros():
+    import subprocess
+    import sys
+    code = ('import sys, activeloc_ros.control, activeloc_ros.control.serial_link, '
+            'activeloc_ros.control.emulator; '
+            'sys.exit(any(m.startswith("rclpy") for m in sys.modules))')
+    assert subprocess.run([sys.executable, '-c', code]).returncode == 0
+
+
+@pytest.mark.parametrize('u, v, pan_deg, tilt_deg', [
+    (319.5, 239.5, 0.0, 0.0),                                  # the principal point
+    (319.5 + 615.0, 239.5, -45.0, 0.0),                        # right: turn right (pan < 0)
+    (319.5 - 615.0, 239.5, 45.0, 0.0),
+    (319.5, 239.5 - 615.0, 0.0, 45.0),                         # above: raise (tilt > 0)
+    (319.5 + 615.0, 239.5 + 615.0, -45.0, -math.degrees(math.atan(1 / math.sqrt(2)))),
+])
+def test_angular_error_from_intrinsics(u, v, pan_deg, tilt_deg):
+    wide = Intrinsics(615.0, 615.0, 319.5, 239.5, 2000, 2000)  # room for far pixels
+    pan, tilt = angular_error(u, v, wide)
+    assert math.degrees(pan) == pytest.approx(pan_deg, abs=1e-9)
+    assert math.degrees(tilt) == pytest.approx(tilt_deg, abs=1e-9)
+
+
+def test_field_of_view_comes_from_the_intrinsics_not_a_constant():
+    # The D435 colour camera: 69.4 deg horizontal FOV at 1920 px -> fx = 960 / tan(34.7 deg).
+    fx = 960 / math.tan(math.radians(34.7))
+    intr = Intrinsics(fx, fx, 959.5, 539.5, 1920, 1080)
+    pan, _ = angular_error(-0.5, 539.5, intr)
+    assert math.degrees(pan) == pytest.approx(34.7, abs=1e-6)
+    narrow = Intrinsics(2 * fx, 2 * fx, 959.5, 539.5, 1920, 1080)
+    assert angular_error(-0.5, 539.5, narrow)[0] < pan / 1.5
+
+
+@pytest.mark.parametrize('camera_tilt_deg', [-40.0, -10.0, 0.0, 25.0, 60.0])
+@pytest.mark.parametrize('u, v', [(10.0, 20.0), (600.0, 470.0), (319.5, 50.0), (100, 239.5)])
+def test_turning_by_the_error_centres_the_ray(camera_tilt_deg, u, v):
+    """Pan then tilt by the error: the ray's world direction is then the optical axis."""
+    tilt0 = math.radians(camera_tilt_deg)
+    d_pan, d_tilt = angular_error(u, v, D435, camera_tilt=tilt0)
+    x, y = D435.normalized(u, v)
+
+    def world(fwd, left, up, pan, tilt):  # camera body -> world, pan about the vertical
+        c, s = math.cos(tilt), math.sin(tilt)
+        fwd, up = fwd * c - up * s, fwd * s + up * c
+        c, s = math.cos(pan), math.sin(pan)
+        return (fwd * c - left * s, fwd * s + left * c, up)
+
+    ray = world(1.0, -x, -y, 0.0, tilt0)
+    axis = world(1.0, 0.0, 0.0, d_pan, tilt0 + d_tilt)
+    norm = math.sqrt(sum(r * r for r in ray))
+    assert [r / norm for r in ray] == pytest.approx(list(axis), abs=1e-9)
+
+
+def test_distortion_is_undone():
+    k1, k2, p1, p2, k3 = -0.1, 0.02, 0.001, -0.002, 0.0
+    intr = Intrinsics(600.0, 600.0, 320.0, 240.0, 640, 480, dist=(k1, k2, p1, p2, k3))
+    x, y = 0.3, -0.2                                   # an ideal ray, distorted forwards:
+    r2 = x * x + y * y
+    radial = 1 + k1 * r2 + k2 * r2 * r2
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    assert intr.normalized(320.0 + 600.0 * xd, 240.0 + 600.0 * yd) == pytest.approx((x, y))
+
+
+def test_binning_and_roi_map_back_to_full_resolution():
+    full = Intrinsics.from_camera_info([600, 0, 320, 0, 600, 240, 0, 0, 1], 640, 480)
+    binned = Intrinsics.from_camera_info([600, 0, 320, 0, 600, 240, 0, 0, 1], 640, 480,
+                                         binning_x=2, binning_y=2, roi=(100, 50, 400, 300))
+    assert binned.image_size == (200, 150)
+    assert binned.normalized(50.0, 40.0) == pytest.approx(full.normalized(200.0, 130.0))
+    assert binned.contains(199.0, 149.0) and not binned.contains(250.0, 10.0)
+
+
+@pytest.mark.parametrize('k, width, height', [
+    ([0] * 9, 640, 480), ([600, 0, 320, 0, 600, 240, 0, 0, 1], 0, 480),
+    ([math.nan, 0, 320, 0, 600, 240, 0, 0, 1], 640, 480), ([600, 0, 320], 640, 480)])
+def test_bad_intrinsics_are_refused(k, width, height):
+    with pytest.raises(ConfigError):
+        Intrinsics.from_camera_info(k, width, height)
+
+
+# -- the PD law (Eq. 4) -----------------------------------------------------------------------
+
+def test_step_response_matches_the_closed_form():
+    """Error 0 until t1, E after: u(t1) = kp E + kd E / (t1 - t0), then kp E."""
+    kp, kd, E = 1.0, 0.1, math.radians(10.0)
+    pd = PDController(PDConfig(kp=kp, kd=kd, dead_band=0.0))
+    times = [0.0, 0.040, 0.071, 0.130, 0.166]  # real, uneven frame stamps
+    out = [pd.update((0.0, 0.0), times[0])]
+    out += [pd.update((E, -E), t) for t in times[1:]]
+    assert out[0] == (0.0, 0.0)
+    expected = kp * E + kd * E / (times[1] - times[0])
+    assert out[1] == pytest.approx((expected, -expected))
+    for o in out[2:]:
+        assert o == pytest.approx((kp * E, -kp * E))
+
+
+def test_filtered_derivative_decays_geometrically():
+    """With a low-pass of time constant tau: d_n = d_1 * prod(tau / (tau + dt_k))."""
+    kp, kd, tau, E = 1.0, 0.1, 0.05, 0.2
+    pd = PDController(PDConfig(kp=kp, kd=kd, dead_band=0.0, derivative_tau=tau))
+    times = [0.0, 0.03, 0.07, 0.10, 0.16]
+    pd.update((0.0, 0.0), times[0])
+    d = (times[1] - times[0]) / (tau + times[1] - times[0]) * E / (times[1] - times[0])
+    assert pd.update((E, 0.0), times[1])[0] == pytest.approx(kp * E + kd * d)
+    for t_prev, t in zip(times[1:], times[2:]):
+        d *= tau / (tau + t - t_prev)
+        assert pd.update((E, 0.0), t)[0] == pytest.approx(kp * E + kd * d)
+
+
+def test_dead_band_gates_small_errors():
+    pd = PDController(PDConfig(kp=1.0, kd=0.1, dead_band=math.radians(2.0)))
+    assert pd.within_dead_band((math.radians(1.9), -math.radians(1.9)))
+    assert not pd.within_dead_band((math.radians(0.5), math.radians(2.5)))
+
+
+def test_target_derivative_sees_the_action_move_not_the_camera():
+    pd = PDController(PDConfig(kp=1.0, kd=0.5, dead_band=0.0, derivative='target'))
+    pd.update((0.2, 0.0), 0.0, camera=(0.0, 0.0))
+    # The camera turned by 0.2 and now sees the action centred: the action did not move.
+    assert pd.update((0.0, 0.0), 0.1, camera=(0.2, 0.0)) == pytest.approx((0.0, 0.0))
+    # The action moves at 1 rad/s: feed-forward kd * 1.
+    assert pd.update((0.1, 0.0), 0.2, camera=(0.2, 0.0)) == pytest.approx((0.1 + 0.5, 0.0))
+
+
+@pytest.mark.parametrize('name, gains', [
+    ('paper', (1.0, 0.1)), ('low_p', (0.5, 0.1)), ('no_d', (1.0, 0.0)), ('high_d', (1.0, 1.0))])
+def test_paper_variants(name, gains):
+    assert PD_VARIANTS[name] == gains
+    config = PDConfig.variant(name, dead_band=0.0)
+    assert (config.kp, config.kd) == gains
+
+
+@pytest.mark.parametrize('options', [
+    {'kp': -1.0}, {'kd': math.nan}, {'dead_band': -0.1}, {'derivative': 'both'}])
+def test_bad_pd_config_is_refused(options):
+    with pytest.raises(ConfigError):
+        PDConfig(**options)
+
+
+def test_unknown_variant_is_refused():
+    with pytest.raises(ConfigError, match='unknown PD variant'):
+        PDConfig.variant('pid')
+
+
+# -- the controller ---------------------------------------------------------------------------
+
+def make_controller(**options) -> ReactiveController:
+    pd = options.pop('pd', PDConfig(kp=1.0, kd=0.0, dead_band=0.0))
+    ctl = ReactiveController(ControllerConfig(pd=pd, **options), t0=0.0)
+    ctl.set_intrinsics(D435)
+    return ctl
+
+
+def pixel_for(pan_deg: float, intr: Intrinsics = D435) -> float:
+    """The column where an action at pan_deg (left > 0) of the optical axis appears."""
+    return intr.cx - intr.fx * math.tan(math.radians(pan_deg))
+
+
+def test_one_step_turns_by_the_error_within_the_speed_limit():
+    ctl = make_controller()
+    cmd = ctl.on_location(pixel_for(10.0), D435.cy, 0.9, 1.0)
+    assert cmd.reason == 'track' and cmd.stamp == 0.9 and cmd.t == 1.0
+    assert cmd.joints_deg[0] == pytest.approx(HOME_DEG[0] + 10.0)
+    assert cmd.joints_deg[1:] == pytest.approx(HOME_DEG[1:])
+    # 10 degrees in 20 ms is faster than the servos (50 deg/s): the guard spreads it.
+    ctl = make_controller()
+    cmd = ctl.on_location(pixel_for(10.0), D435.cy, 0.0, 0.02)
+    assert cmd.joints_deg[0] == pytest.approx(HOME_DEG[0] + 1.0)
+
+
+def test_pose_at_capture_time_is_used_not_the_latest():
+    """A frame captured before the arm turned asks for the turn once, not twice."""
+    ctl = make_controller()
+    home = list(HOME_DEG)
+    ctl.observe_joints(home, 0.0)
+    ctl.observe_joints([home[0] + 10.0] + home[1:], 1.0)
+    cmd = ctl.on_location(pixel_for(10.0), D435.cy, 0.0, 1.5)  # captured at home
+    assert cmd.joints_deg[0] == pytest.approx(HOME_DEG[0] + 10.0)
+
+
+def test_tilt_goes_to_the_tilt_joints_with_their_gains():
+    mapping = ArmMapping(tilt_joints=('elbow', 'wrist_ver'), tilt_gains=(-0.5, 0.5))
+    ctl = make_controller(mapping=mapping)
+    cmd = ctl.on_location(D435.cx, D435.cy - D435.fy * math.tan(math.radians(8.0)), 0.0, 1.0)
+    assert cmd.joints_deg[2] == pytest.approx(HOME_DEG[2] - 4.0)
+    assert cmd.joints_deg[3] == pytest.approx(HOME_DEG[3] + 4.0)
+    assert mapping.pan_tilt(cmd.joints_deg)[1] == pytest.approx(math.radians(8.0))
+
+
+@pytest.mark.parametrize('u, v, peak', [
+    (math.nan, 100.0, 1.0), (100.0, math.inf, 1.0), (1e9, 100.0, 1.0), (-50.0, 100.0, 1.0),
+    (100.0, 480.0, 1.0), (100.0, 100.0, math.nan), (100.0, 100.0, -1.0)])
+def test_nan_and_absurd_locations_are_ignored(u, v, peak):
+    ctl = make_controller(min_peak=0.0)
+    assert ctl.on_location(u, v, 0.5, 1.0, peak=peak) is None
+    assert sum(ctl.ignored.values()) == 1 and ctl.commands == 0
+
+
+def test_locations_need_intrinsics_and_increasing_stamps():
+    ctl = ReactiveController(ControllerConfig(), t0=0.0)
+    assert ctl.on_location(100.0, 100.0, 0.5, 1.0) is None and ctl.state == 'waiting'
+    ctl.set_intrinsics(D435)
+    assert ctl.on_location(100.0, 100.0, 0.5, 1.0) is not None
+    assert ctl.on_location(100.0, 100.0, 0.5, 1.1) is None        # the same frame again
+    assert ctl.on_location(100.0, 100.0, 0.4, 1.2) is None        # an older frame
+    assert ctl.ignored == {'no camera info': 1, 'out of order': 2}
+
+
+def test_dead_band_keeps_the_last_command():
+    ctl = make_controller(pd=PDConfig(kp=1.0, kd=0.1, dead_band=math.radians(2.0)))
+    first = ctl.on_location(pixel_for(5.0), D435.cy, 0.0, 0.5)
+    second = ctl.on_location(pixel_for(1.0), D435.cy, 0.1, 0.6)
+    assert second.joints_deg == first.joints_deg
+
+
+def test_watchdog_holds_once_then_stays_silent():
+    ctl = make_controller(watchdog_timeout=0.5)
+    ctl.observe_joints(HOME_DEG, 0.0)
+    assert ctl.on_location(pixel_for(20.0), D435.cy, 0.0, 0.0) is not None
+    ctl.observe_joints([HOME_DEG[0] + 7] + list(HOME_DEG[1:]), 0.3)  # the arm on its way
+    assert ctl.tick(0.4) is None and ctl.state == 'tracking'
+    hold = ctl.tick(0.51)
+    assert hold is not None and hold.reason == 'hold' and ctl.state == 'holding'
+    assert hold.joints_deg[0] == pytest.approx(HOME_DEG[0] + 7)   # where the arm is
+    assert all(ctl.tick(t) is None for t in (0.6, 1.0, 5.0, 50.0))  # no drift afterwards
+
+
+def test_after_a_hold_tracking_restarts_without_a_derivative_kick():
+    ctl = make_controller(pd=PDConfig(kp=1.0, kd=1.0, dead_band=0.0), watchdog_timeout=0.5)
+    ctl.on_location(pixel_for(0.0), D435.cy, 0.0, 0.0)
+    assert ctl.tick(1.0) is not None
+    cmd = ctl.on_location(pixel_for(5.0), D435.cy, 10.0, 10.0)
+    assert cmd.joints_deg[0] == pytest.approx(HOME_DEG[0] + 5.0)  # kp * e only
+
+
+def test_closed_loop_step_response_on_the_servo_model():
+    """A still action 20 deg to the left, 10 fps, servos at 50 deg/s (5 deg a frame): the
+    camera ramps there at the servos' speed and settles inside the dead band."""
+    from activeloc_ros.control import SimArm
+    ctl = make_controller(pd=PDConfig(kp=1.0, kd=0.1, dead_band=math.radians(1.0)))
+    arm = SimArm(HOME_DEG, 0.0)
+    action = 20.0
+    pans = []
+    for k in range(60):
+        t = k * 0.1
+        here = arm.advance(t)
+        ctl.observe_joints(here, t)
+        pan = here[0] - HOME_DEG[0]
+        pans.append(pan)
+        cmd = ctl.on_location(pixel_for(action - pan), D435.cy, t, t + 0.01)
+        arm.command(cmd.joints_deg, t + 0.01)
+    assert pans[:3] == [0, 0, 5]  # no motion at t0, then the servos' speed
+    assert all(b - a <= 5 for a, b in zip(pans, pans[1:]))
+    assert all(abs(p - action) < 2.0 for p in pans[-30:])  # settled, no limit cycle
+    assert max(pans) <= action + 1
+
+
+def test_pose_history_interpolates_and_falls_back_to_the_newest():
+    h = PoseHistory()
+    assert h.at(1.0, 0.5) is None
+    h.add(1.0, [0.0] * 6)
+    h.add(2.0, [10.0] * 6)
+    assert not h.add(1.5, [5.0] * 6)  # out of order
+    assert h.at(1.25, 0.5) == pytest.approx([2.5] * 6)
+    assert h.at(0.8, 0.5) == (0.0,) * 6
+    assert h.at(-100.0, 0.5) == (10.0,) * 6  # e.g. a replayed bag's old stamps
+
+
+def test_latency_percentiles():
+    stats = LatencyStats()
+    assert math.isnan(stats.percentile(50))
+    for ms in range(1, 101):
+        stats.add(ms / 1000)
+    stats.add(math.nan)
+    assert stats.summary() == {'n': 100, 'p50': 0.05, 'p95': 0.095}
