@@ -32,6 +32,9 @@ PARAMS = [
     Param('realsense_height', 480, 'RealSense colour height', positive),
     Param('realsense_fps', 30, 'RealSense colour frame rate', positive),
     Param('max_frames', 0, 'stop after this many frames (0: no limit)', non_negative),
+    Param('wait_for_subscriber', 120.0, 'recorded sources: seconds to wait for a subscriber '
+          'before the first frame, so a model still loading misses nothing (0: do not wait)',
+          non_negative),
 ]
 
 
@@ -52,6 +55,8 @@ class CameraNode(Node):
         self.published = 0
         self.logged_problems = set()
         self.finished = False
+        self.started_at = time.monotonic()
+        self.waiting = not self.source.live and p['wait_for_subscriber'] > 0
         self.timer = self.create_timer(0.005, self.tick)
         self.get_logger().info(f'streaming {p["source"]}')
 
@@ -59,7 +64,7 @@ class CameraNode(Node):
         return self.get_clock().now().nanoseconds / 1e9
 
     def tick(self) -> None:
-        if self.finished:
+        if self.finished or (self.waiting and not self._subscriber_ready()):
             return
         if self.pending is None:
             self.pending = self._next_frame()
@@ -73,6 +78,17 @@ class CameraNode(Node):
         self.pending = None
         if self.params['max_frames'] and self.published >= self.params['max_frames']:
             self._finish('max_frames reached')
+
+    def _subscriber_ready(self) -> bool:
+        if self.image_pub.get_subscription_count() > 0:
+            self.get_logger().info('a subscriber is listening: replay starts')
+        elif time.monotonic() - self.started_at > self.params['wait_for_subscriber']:
+            self.get_logger().warning('no subscriber after '
+                                      f'{self.params["wait_for_subscriber"]:g} s: replay starts')
+        else:
+            return False
+        self.waiting = False
+        return True
 
     def _next_frame(self):
         try:

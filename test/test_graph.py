@@ -1,0 +1,225 @@
+"""The node graph end to end: in one executor, under bringup, recorded, and with bad input."""
+import math
+import os
+from pathlib import Path
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile
+
+from activeloc_ros.control.braccio import JOINT_NAMES, LIMITS_DEG
+from activeloc_ros.errors import ConfigError
+from conftest import params_args, REPO
+
+SAMPLE = REPO / 'bags' / 'vtest'
+
+
+def spin_until(executor, condition, timeout):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and not condition():
+        executor.spin_once(timeout_sec=0.05)
+    return condition()
+
+
+def within_limits(msg, tol_deg=1e-6):
+    for name, position in zip(msg.name, msg.position):
+        lo, hi = LIMITS_DEG[name]
+        if not lo - tol_deg <= math.degrees(position) <= hi + tol_deg:
+            return False
+    return True
+
+
+class Probe:
+    def __init__(self, context):
+        from geometry_msgs.msg import PointStamped
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float32MultiArray
+        self.node = Node('probe', context=context)
+        self.maps, self.locations, self.commands = [], [], []
+        sub = self.node.create_subscription
+        sub(Float32MultiArray, 'surprise_map', self.on_map, 100)
+        sub(PointStamped, 'action_location', self.on_location, 100)
+        sub(JointState, 'joint_commands', self.commands.append, QoSProfile(depth=100))
+
+
+    def on_map(self, msg):
+        self.maps.append(msg)
+
+    def on_location(self, msg):
+        self.locations.append(msg)
+
+
+def test_graph_in_one_executor(context):
+    from activeloc_ros.arm_node import ArmNode
+    from activeloc_ros.camera_node import CameraNode
+    from activeloc_ros.controller_node import ControllerNode
+    from activeloc_ros.perception_node import PerceptionNode
+    # 20 frames at 5 frames/s: perception keeps up on any machine, or drops frames
+    nodes = [CameraNode(context=context, cli_args=params_args('camera', 'rate:=0.5',
+                                                              'max_frames:=20')),
+             PerceptionNode(context=context, cli_args=params_args('perception')),
+             ControllerNode(context=context, cli_args=params_args('controller')),
+             ArmNode(context=context, cli_args=params_args('arm', 'backend:=sim'))]
+    probe = Probe(context)
+    executor = MultiThreadedExecutor(num_threads=4, context=context)
+    for node in nodes + [probe.node]:
+        executor.add_node(node)
+    try:
+        assert spin_until(executor, lambda: nodes[0].finished, 120), 'camera did not finish'
+        count = -1
+        while count != len(probe.maps):     # drain: until no new map for a second
+            count = len(probe.maps)
+            spin_until(executor, lambda: len(probe.maps) > count, 1.0)
+        spin_until(executor, lambda: len(probe.locations) >= len(probe.maps), 2.0)
+    finally:
+        executor.shutdown()
+        for node in nodes + [probe.node]:
+            node.destroy_node()
+    assert len(probe.maps) >= 3
+    for msg in probe.maps:
+        assert [d.size for d in msg.layout.dim] == [14, 14]
+        grid = np.asarray(msg.data).reshape(14, 14)
+        assert np.all(grid >= 0) and grid.sum() == pytest.approx(1.0, abs=1e-3)
+    # maps come in frame order: each is followed by its location, stamps increase, and the
+    # location lies in the cell where that map peaks
+    stamps = [loc.header.stamp.sec + loc.header.stamp.nanosec * 1e-9 for loc in probe.locations]
+    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    for msg, loc in zip(probe.maps, probe.locations):
+        row, col = np.unravel_index(np.argmax(msg.data), (14, 14))
+        assert (int(loc.point.x // (640 / 14)), int(loc.point.y // (480 / 14))) == (col, row)
+        assert 0 <= loc.point.x < 640 and 0 <= loc.point.y < 480
+    assert probe.commands, 'the controller sent no joint command'
+    for cmd in probe.commands:
+        assert set(cmd.name) <= set(JOINT_NAMES) and within_limits(cmd)
+
+
+def test_unsupported_images_are_skipped_and_logged_once(context):
+    from sensor_msgs.msg import Image
+    from activeloc_ros.perception_node import PerceptionNode
+    node = PerceptionNode(context=context, cli_args=params_args('perception'))
+    probe = Probe(context)
+    pub = probe.node.create_publisher(Image, 'camera/image_raw', 10)
+    executor = MultiThreadedExecutor(context=context)
+    executor.add_node(node)
+    executor.add_node(probe.node)
+    bad = Image(height=4, width=4, encoding='16UC1', step=8, data=bytes(32))
+    empty = Image(height=0, width=0, encoding='rgb8', step=0, data=b'')
+    good = Image(height=60, width=80, encoding='rgb8', step=240,
+                 data=np.random.default_rng(0).integers(0, 255, 60 * 80 * 3,
+                                                        dtype=np.uint8).tobytes())
+    try:
+        assert spin_until(executor, lambda: node.sub.get_publisher_count() > 0, 10)
+        for msg in (bad, bad, empty, good):
+            pub.publish(msg)
+            spin_until(executor, lambda: False, 0.3)
+        assert spin_until(executor, lambda: len(probe.maps) == 1, 60)
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        probe.node.destroy_node()
+    assert len(node.logged_problems) == 2      # one entry per kind, not per frame
+    assert len(probe.maps) == 1
+
+
+@pytest.mark.parametrize('node_name,override,param', [
+    ('camera', 'rate:=-1.0', 'rate'),
+    ('camera', 'encoding:=yuv422', 'encoding'),
+    ('perception', 'publish_overlay:=true', None),     # valid: no error
+])
+def test_invalid_parameters_name_the_parameter(context, node_name, override, param):
+    from activeloc_ros.camera_node import CameraNode
+    from activeloc_ros.perception_node import PerceptionNode
+    cls = {'camera': CameraNode, 'perception': PerceptionNode}[node_name]
+    args = params_args(node_name, override)
+    if param is None:
+        cls(context=context, cli_args=args).destroy_node()
+        return
+    with pytest.raises(ConfigError, match=param):
+        cls(context=context, cli_args=args)
+
+
+def run_bringup(*args, env, timeout):
+    return subprocess.run([sys.executable, '-m', 'activeloc_ros.bringup', *args], env=env,
+                          cwd=REPO, capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture
+def graph_env(tmp_path):
+    domain = 101 + os.getpid() % 100        # away from the in-process tests' domain
+    return dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONPATH=str(REPO),
+                ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+
+
+def test_bringup_processes_echo_and_record(tmp_path, graph_env):
+    """bringup runs the graph as processes; another process hears /surprise_map; the
+    recorded bag reads back with rosbags."""
+    record = tmp_path / 'run'
+    bringup = subprocess.Popen(
+        [sys.executable, '-m', 'activeloc_ros.bringup', '--rate', '3', '--record', str(record),
+         '--log-dir', str(tmp_path / 'logs')],
+        env=graph_env, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    echo = subprocess.run(
+        [sys.executable, '-m', 'activeloc_ros.echo', '/surprise_map', '--count', '2',
+         '--timeout', '150'], env=graph_env, cwd=REPO, capture_output=True, text=True,
+        timeout=200)
+    out, _ = bringup.communicate(timeout=200)
+    assert echo.returncode == 0, echo.stderr
+    assert '14x14 map' in echo.stdout
+    assert bringup.returncode == 0, out
+    assert 'summary: stopped after' in out and 'source ended' in out
+    assert 'node exit codes: arm 0, controller 0, perception 0, camera 0' in out
+
+    from rosbags.highlevel import AnyReader
+    with AnyReader([record]) as reader:
+        topics = {c.topic: c for c in reader.connections}
+        assert {'/camera/image_raw', '/camera/camera_info', '/surprise_map', '/action_location',
+                '/joint_commands', '/joint_states'} <= set(topics)
+        maps = [reader.deserialize(raw, conn.msgtype) for conn, _, raw in
+                reader.messages(connections=[topics['/surprise_map']])]
+    assert len(maps) >= 3
+    assert [d.size for d in maps[0].layout.dim] == [14, 14] and len(maps[0].data) == 196
+    info = subprocess.run([sys.executable, '-m', 'activeloc_ros.bag', 'info', str(record)],
+                          capture_output=True, text=True, cwd=REPO, env=graph_env, timeout=60)
+    assert 'Topic: /surprise_map | Type: std_msgs/msg/Float32MultiArray' in info.stdout
+
+
+def write_text_bag(path):
+    from activeloc_ros.bag import BagWriter
+    writer = BagWriter(path)
+    writer.write('/chatter', 'std_msgs/msg/String', 1,
+                 writer.store.types['std_msgs/msg/String'](data='no images here'))
+    writer.close()
+
+
+@pytest.mark.parametrize('case,message', [
+    ('missing', 'bag not found'),
+    ('empty', 'empty'),
+    ('corrupt', 'cannot read bag file'),
+    ('no_image', 'no image topic'),
+    ('bad_params', 'not in ROS 2 format'),
+])
+def test_bringup_refuses_bad_input_before_any_node(tmp_path, graph_env, case, message):
+    target, extra = tmp_path / 'bag.mcap', []
+    if case == 'empty':
+        target.write_bytes(b'')
+    elif case == 'corrupt':
+        target.write_bytes((SAMPLE / 'vtest.mcap').read_bytes()[:100000])
+    elif case == 'no_image':
+        target = tmp_path / 'text'
+        write_text_bag(target)
+    elif case == 'bad_params':
+        target = SAMPLE
+        (tmp_path / 'p.yaml').write_text('rate: 2\n')
+        extra = ['--params', str(tmp_path / 'p.yaml')]
+    logs = tmp_path / 'logs'
+    result = run_bringup('--camera', f'bag:{target}', '--log-dir', str(logs), *extra,
+                         env=graph_env, timeout=60)
+    assert result.returncode != 0
+    assert message in result.stderr
+    assert not logs.exists(), 'a node was started'
