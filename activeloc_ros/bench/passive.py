@@ -118,10 +118,10 @@ def _ablation_overrides(ablation: str) -> dict:
     """PerceptionConfig fields for each paper Table 3 row."""
     table = {
         'full': {},
-        # ECCV'20-era predictive learning: raw motion weighting and no attention loss
-        'predlearn': {'normalized_motion': False, 'attn_loss': False},
-        'no_norm_motion': {'normalized_motion': False},
-        'no_attn': {'attn_loss': False},
+        # ECCV'20-era predictive learning: raw motion weighting and no L_attn
+        'predlearn': {'mode': 'predlearn'},
+        'no_norm_motion': {'motion': 'raw'},
+        'no_attn': {'use_attn_loss': False},
     }
     if ablation not in table:
         raise ActivelocError(f'unknown ablation {ablation!r}; choose from {", ".join(table)}')
@@ -129,44 +129,38 @@ def _ablation_overrides(ablation: str) -> dict:
 
 
 class ModelMethod:
-    """The perception model (`SurpriseModel`), rebuilt fresh for every sequence."""
+    """The perception model (`SurpriseModel`), fresh for every sequence.
+
+    It learns online, so a model carried from one sequence to the next would make each
+    sequence's score depend on the order; every sequence starts from the same seeded state.
+    The first model is built at once so missing weights fail before the run starts.
+    """
 
     def __init__(self, encoder: str | None, ablation: str, *, seed: int = 0,
                  extra: dict | None = None) -> None:
         from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
-        settings = dict(extra or {})
+        settings = {'seed': seed, **(extra or {})}
         if encoder:
             settings['encoder'] = encoder
         settings.update(_ablation_overrides(ablation))
         self.config = PerceptionConfig.from_dict(settings)
-        self.encoder = getattr(self.config, 'encoder', encoder)
+        self.encoder = self.config.encoder
         self.ablation = ablation
         self.name = f'model:{self.encoder}/{ablation}'
-        self.seed = seed
         self.factory: Callable[[], object] = lambda: SurpriseModel(self.config)
-        self.model = self._build()
-
-    def _build(self) -> object:
-        _seed_everything(self.seed)
-        return self.factory()
+        self.model = self.factory()
+        self.used = False
 
     def reset(self, sequence: data.Sequence) -> None:
-        self.model = self._build()
+        if self.used:
+            self.model = self.factory()
+        self.used = True
 
     def step(self, image: np.ndarray) -> np.ndarray:
         return np.asarray(self.model.step(image).surprise_map, dtype=np.float64)
 
     def peak(self, heat: np.ndarray, image_wh: tuple[int, int]) -> tuple[float, float]:
         return metrics.peak_point(heat, image_wh)
-
-
-def _seed_everything(seed: int) -> None:
-    import random
-
-    import torch
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
 
 
 @dataclass
@@ -279,12 +273,17 @@ def evaluate(sequences: list[data.Sequence], methods: list[Method], *,
                'ms_per_frame': 1000.0 * seconds / steps if steps else None,
                'by_camera': by_camera, 'sequences': seqs}
         if isinstance(m, ModelMethod):
-            row.update(encoder=m.encoder, ablation=m.ablation)
+            row.update(encoder=m.encoder, ablation=m.ablation, config=_plain(m.config))
         results.append(row)
     chance = [i['chance_hit_rate'] for i in info.values()]
     return {'methods': results, 'skipped': skipped,
             'chance_hit_rate_seq_mean': float(np.nanmean(chance)) if chance else float('nan'),
             'frames': frames_out}
+
+
+def _plain(config: object) -> dict:
+    to_dict = getattr(config, 'to_dict', None)
+    return dict(to_dict()) if callable(to_dict) else dict(vars(config))
 
 
 def _pct(value: float) -> str:
