@@ -18,7 +18,7 @@ import torch.nn.functional as F
 
 from activeloc_ros.errors import ConfigError, FrameError, WeightsError
 from activeloc_ros.perception import weights
-from activeloc_ros.perception.encoders import build_encoder, ENCODERS, Encoder
+from activeloc_ros.perception.encoders import build_encoder, ENCODERS, Encoder, fold_batchnorm
 
 DATA = Path(__file__).parent / 'data'
 CHANNELS = {'vgg16': 512, 'vgg19': 512, 'efficientnet_lite0': 112, 'resnet50': 1024}
@@ -31,6 +31,16 @@ TORCHVISION_VGG16_CONVS = {0: (64, 3), 2: (64, 64), 5: (128, 64), 7: (128, 128),
                            10: (256, 128), 12: (256, 256), 14: (256, 256), 17: (512, 256),
                            19: (512, 512), 21: (512, 512)}
 TORCHVISION_VGG16_POOLS = (4, 9, 16, 23)
+
+
+@pytest.fixture(scope='module', autouse=True)
+def one_thread():
+    """One intra-op thread: on a shared 2-core box every op of a two-thread run waits at a
+    barrier for a descheduled thread (EfficientNet measured >10x slower). Restored after."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
 
 
 def photo(name: str) -> torch.Tensor:
@@ -113,10 +123,10 @@ def test_preprocessing_channel_order_matches_the_weights(pretrained, name):
 
 
 def views(x: torch.Tensor) -> torch.Tensor:
-    """Four views of one photo: as is, mirrored, zoomed in, darker."""
+    """Three views of one photo: as is, mirrored, zoomed in."""
     zoom = F.interpolate(x[..., 16:208, 16:208], size=224, mode='bilinear',
                          align_corners=False)
-    return torch.cat([x, x.flip(3), zoom, x * 0.7])
+    return torch.cat([x, x.flip(3), zoom])
 
 
 def separation(enc: Encoder) -> float:
@@ -125,18 +135,19 @@ def separation(enc: Encoder) -> float:
     with torch.inference_mode():
         g = F.normalize(enc(enc.preprocess(batch)).mean((2, 3)), dim=1)
     sim = g @ g.T
-    label = torch.arange(8) // 4
-    same = (label[:, None] == label[None, :]) & ~torch.eye(8, dtype=torch.bool)
+    n = len(batch)
+    label = torch.arange(n) // (n // 2)
+    same = (label[:, None] == label[None, :]) & ~torch.eye(n, dtype=torch.bool)
     return float(sim[same].min() - sim[label[:, None] != label[None, :]].max())
 
 
 def test_vgg19_features_tell_two_photos_apart_where_random_ones_do_not(pretrained):
-    # Measured: 0.23 with the weights, 0.00 random, 0.11 with block4's conv2/conv3
-    # swapped, 0.01 with block3's, 0.11 with pixels scaled to 0..1.
+    # Measured: 0.234 with the weights, 0.003 random, 0.116 with block4's conv2 and conv3
+    # swapped, 0.011 with block3's, 0.154 with the input scaled to 0..1.
     torch.manual_seed(0)
     real = separation(pretrained('vgg19'))
     rand = separation(build_encoder('vgg19', pretrained=False))
-    assert real > 0.15
+    assert real > 0.19
     assert real > rand + 0.1
 
 
@@ -216,10 +227,12 @@ def reference_vgg16_pool4(state: dict[str, torch.Tensor], x: torch.Tensor) -> to
     return x
 
 
-def test_vgg16_loads_a_torchvision_layout_file(tmp_path):
+@pytest.mark.parametrize('zip_format', [False, True])
+def test_vgg16_loads_a_torchvision_layout_file(tmp_path, zip_format):
+    # torchvision's vgg16-397923af.pth (2017) predates torch's zip format
     state = torchvision_vgg16_trunk()
     path = tmp_path / 'vgg16-trunk.pth'
-    torch.save(state, path)
+    torch.save(state, path, _use_new_zipfile_serialization=zip_format)
     enc = build_encoder('vgg16', weights=path)
     assert enc.channels == 512 and not enc.has_classifier
     x = torch.rand(1, 3, 64, 64) * 255
@@ -284,7 +297,7 @@ def test_batchnorm_statistics_stay_frozen_in_train_mode():
     torch.manual_seed(0)
     enc = build_encoder('efficientnet_lite0', pretrained=False, classifier=False).train()
     before = {k: v.clone() for k, v in enc.state_dict().items() if 'running' in k}
-    out = enc(torch.randn(2, 3, 224, 224))
+    out = enc(torch.randn(2, 3, 64, 64))
     out.mean().backward()
     after = enc.state_dict()
     assert all(torch.equal(v, after[k]) for k, v in before.items())
@@ -298,7 +311,7 @@ def test_batchnorm_statistics_stay_frozen_in_train_mode():
 def test_channels_last_gives_the_same_features(name):
     torch.manual_seed(0)
     enc = build_encoder(name, pretrained=False, classifier=False)
-    x = enc.preprocess(torch.rand(1, 3, 224, 224) * 255)
+    x = enc.preprocess(torch.rand(1, 3, 96, 96) * 255)
     with torch.inference_mode():
         plain = enc(x)
         enc = enc.to(memory_format=torch.channels_last)
@@ -373,3 +386,22 @@ def test_cli_help_and_status(tmp_path, capsys):
     assert '--encoders' in capsys.readouterr().out
     assert weights.main(['status', '--cache', str(tmp_path)]) == 1
     assert 'vgg19' in capsys.readouterr().out
+
+
+@pytest.mark.parametrize('name', ['efficientnet_lite0', 'resnet50'])
+def test_folded_copy_computes_the_same_features_without_batchnorm(name):
+    torch.manual_seed(0)
+    enc = build_encoder(name, pretrained=False)
+    for m in enc.modules():  # non-trivial statistics, or folding would be a no-op
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.5, 0.5)
+            m.running_var.uniform_(0.5, 2.0)
+            m.weight.data.uniform_(0.5, 1.5)
+    folded = fold_batchnorm(enc)
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
+    assert not any(p.requires_grad for p in folded.parameters())
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in enc.modules())  # a copy
+    x = enc.preprocess(torch.rand(1, 3, 96, 96) * 255)  # small: the maths is size-free
+    with torch.inference_mode():
+        assert torch.allclose(folded(x), enc(x), rtol=1e-3, atol=1e-4)
+        assert torch.allclose(folded.classify(x), enc.classify(x), rtol=1e-3, atol=1e-3)
