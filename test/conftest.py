@@ -35,3 +35,8 @@ def data_root() -> Path:
     if not root.is_dir():
         pytest.skip(f'annotated sequences not found at {root} (set ACTIVELOC_DATA)')
     return root
+
+
+def pytest_configure(config):
+    # rosidl's parser (lark) imports modules Python 3.11 deprecates; not ours to fix.
+    config.addinivalue_line('filterwarnings', 'ignore::DeprecationWarning:lark.*')
