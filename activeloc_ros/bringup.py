@@ -228,14 +228,15 @@ class InProcessGraph:
             self.nodes[name] = classes[name](context=context,
                                              cli_args=node_arguments(name, args))
             self.executor.add_node(self.nodes[name])
+        self.halt = threading.Event()
         self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
 
     def _spin(self):
         from rclpy.executors import ExternalShutdownException
         try:
-            while self.context.ok():
-                self.executor.spin_once(timeout_sec=0.1)
+            while not self.halt.is_set() and self.context.ok():
+                self.executor.spin_once(timeout_sec=0.05)
         except ExternalShutdownException:
             pass
 
@@ -243,9 +244,11 @@ class InProcessGraph:
         return self.nodes['camera'].finished
 
     def stop(self):
-        arm = self.nodes['arm']
-        if hasattr(arm, 'stop_on_purpose'):
-            arm.stop_on_purpose()
+        """The controller and the arm stop on purpose while the executor still runs them."""
+        for name in ('controller', 'arm'):
+            self.nodes[name].stop_on_purpose()
+        self.halt.set()
+        self.thread.join(timeout=STOP_DEADLINE_S)
         self.executor.shutdown(timeout_sec=STOP_DEADLINE_S)
         for node in self.nodes.values():
             node.destroy_node()
