@@ -1,0 +1,331 @@
+"""The online surprise model: shapes, learning, determinism, non-finite handling, checkpoints.
+
+A small predictor and either the real encoders with random weights (`pretrained=False`) or a
+tiny stand-in encoder (64 px, 8 x 8 cells, features of order 1, so learning is visible
+whatever scale random ImageNet trunks give) keep the file fast. Nothing here measures time.
+"""
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from activeloc_ros.errors import ConfigError, FrameError
+from activeloc_ros.perception import model as M
+from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
+
+SMALL = dict(pretrained=False, hidden=32, layers=3, attn_units=16, lr=1e-3, num_threads=0)
+
+
+class TinyEncoder(nn.Module):
+    """The encoder interface in miniature: (B, 3, 64, 64) -> (B, 6, 8, 8)."""
+    input_size = 64
+    channels = 6
+
+    def __init__(self):
+        super().__init__()
+        self.conv = nn.Conv2d(3, self.channels, 8, stride=8)
+
+    def preprocess(self, x: torch.Tensor) -> torch.Tensor:
+        return x / 127.5 - 1.0
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.tanh(self.conv(x)) * 2.0
+
+
+def make(*, real: bool = False, **kw) -> SurpriseModel:
+    """A model on the random efficientnet_lite0 trunk (`real`) or on the tiny encoder."""
+    cfg = PerceptionConfig(**{**SMALL, **kw})
+    if real:
+        return SurpriseModel(cfg)
+    torch.manual_seed(cfg.seed)
+    return SurpriseModel(cfg, encoder=TinyEncoder())
+
+
+def clip(n: int, *, h: int = 48, w: int = 64, seed: int = 0) -> list[np.ndarray]:
+    """A textured background with a bright square moving right: n (h, w, 3) uint8 frames."""
+    rng = np.random.default_rng(seed)
+    bg = (rng.random((h, w, 3)) * 200).astype(np.uint8)
+    frames = []
+    for i in range(n):
+        f = bg.copy()
+        x = (4 + 5 * i) % (w - 12)
+        f[h // 3:h // 3 + 12, x:x + 12] = (255, 255, 40)
+        frames.append(f)
+    return frames
+
+
+def weights(model: SurpriseModel) -> dict[str, torch.Tensor]:
+    named = {f'p.{k}': v for k, v in model.predictor.state_dict().items()}
+    named.update({f'e.{k}': v for k, v in model.encoder.state_dict().items()})
+    return {k: v.detach().clone() for k, v in named.items()}
+
+
+def same(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> bool:
+    return all(torch.equal(a[k], b[k]) for k in a)
+
+
+# -- configuration ---------------------------------------------------------------------------
+def test_every_field_has_a_default_and_help_and_round_trips():
+    cfg = PerceptionConfig()
+    for f in dataclasses.fields(PerceptionConfig):
+        assert f.metadata['help'], f.name
+        assert PerceptionConfig.check(f.name, getattr(cfg, f.name)) is None, f.name
+    assert PerceptionConfig.from_dict(cfg.to_dict()) == cfg
+
+
+@pytest.mark.parametrize('key, value', [
+    ('no_such_field', 1),
+    ('encoder', 'alexnet'),
+    ('lr', -1.0),
+    ('lr', 'fast'),
+    ('lr', float('nan')),
+    ('hidden', 0),
+    ('hidden', 2.5),
+    ('update_encoder', 1),
+    ('motion', 'cubic'),
+    ('blur_ksize', 4),
+    ('map_temperature', 0.0),
+    ('optimizer', 'lbfgs'),
+])
+def test_invalid_values_raise_config_error_naming_the_key(key, value):
+    with pytest.raises(ConfigError, match=key):
+        PerceptionConfig.from_dict({key: value})
+    assert PerceptionConfig.check(key, value)
+
+
+def test_from_dict_takes_ints_for_floats_and_modes_resolve():
+    cfg = PerceptionConfig.from_dict({'lr': 1, 'mode': 'predlearn', 'motion': 'sigmoid'})
+    assert cfg.lr == 1.0 and isinstance(cfg.lr, float)
+    assert cfg.motion_weighting == 'raw' and not cfg.attn_loss_on
+    full = PerceptionConfig(motion='sigmoid', use_attn_loss=False)
+    assert full.motion_weighting == 'sigmoid' and not full.attn_loss_on
+
+
+def test_head_none_needs_matching_width():
+    with pytest.raises(ConfigError, match='head'):
+        make(head='none')
+
+
+# -- maps and locations ----------------------------------------------------------------------
+@pytest.mark.parametrize('real', [True, False])
+def test_first_map_is_uniform_then_a_distribution_with_its_argmax(real):
+    model = make(real=real)
+    assert model.grid == (14 if real else 8)
+    frames = clip(4, h=37, w=53)
+    first = model.step(frames[0])
+    assert first.surprise_map.shape == (model.grid, model.grid)
+    np.testing.assert_allclose(first.surprise_map, 1 / model.grid ** 2, rtol=1e-6)
+    assert not first.updated and first.lr == 0.0 and first.losses['total'] == 0.0
+    for frame in frames[1:]:
+        res = model.step(frame)
+        m = res.surprise_map
+        assert m.dtype == np.float32 and (m >= 0).all()
+        assert m.sum() == pytest.approx(1.0, abs=1e-5)
+        row, col = res.cell
+        assert m[row, col] == m.max() == pytest.approx(res.peak)
+        g = model.grid
+        assert res.location_px == pytest.approx(((col + .5) * 53 / g, (row + .5) * 37 / g))
+        assert res.updated and res.lr > 0
+        assert set(res.losses) == {'global', 'attn', 'total'}
+        assert set(res.timings) == {'preprocess', 'encode', 'predict', 'update', 'total'}
+    assert res.frame_index == 3
+
+
+@pytest.mark.parametrize('frame', [
+    np.zeros((32, 32), np.uint8),
+    np.zeros((32, 32, 4), np.uint8),
+    np.zeros((0, 32, 3), np.uint8),
+    np.zeros((32, 32, 3), np.int16),
+    np.zeros((32, 32, 3), bool),
+    [[[0, 0, 0]]],
+])
+def test_bad_frames_raise_frame_error(frame):
+    model = make()
+    with pytest.raises(FrameError):
+        model.step(frame)
+    assert model.frame_index == 0
+
+
+# -- learning --------------------------------------------------------------------------------
+@pytest.mark.parametrize('update_encoder, encoder_grad', [
+    (False, 'both'), (True, 'both'), (True, 'target')])
+def test_gradients_reach_the_predictor_and_the_encoder_only_when_asked(update_encoder,
+                                                                       encoder_grad):
+    model = make(real=True, update_encoder=update_encoder, encoder_grad=encoder_grad)
+    before = weights(model)
+    for frame in clip(3):
+        res = model.step(frame)
+    assert res.updated
+    for name, p in model.predictor.named_parameters():
+        assert p.grad is not None and p.grad.abs().sum() > 0, name
+    enc_grads = [p.grad for p in model.encoder.parameters()]
+    after = weights(model)
+    enc_changed = any(not torch.equal(before[k], after[k]) for k in before if k[0] == 'e')
+    assert enc_changed == update_encoder
+    assert any(g is not None and g.abs().sum() > 0 for g in enc_grads) == update_encoder
+
+
+@pytest.mark.parametrize('kw', [
+    {}, {'optimizer': 'sgd', 'lr': 1e-2, 'motion': 'none'}, {'update_encoder': True},
+    {'mode': 'predlearn'}])
+def test_one_online_step_lowers_the_error_on_a_repeated_pair(kw):
+    model = make(adaptive_lr=False, **kw)
+    a, b = clip(2)
+    model.step(a)
+    first = model.step(b).losses
+    model.reset()
+    model.step(a)
+    second = model.step(b).losses
+    assert second['global'] < first['global']
+    assert second['total'] < first['total']
+
+
+def test_no_learning_leaves_weights_alone():
+    model = make(learn=False)
+    before = weights(model)
+    for frame in clip(4):
+        res = model.step(frame)
+    assert not res.updated and res.lr == 0.0
+    assert same(before, weights(model))
+    assert res.surprise_map.sum() == pytest.approx(1.0, abs=1e-5)
+
+
+def test_predlearn_has_no_attention_loss():
+    model = make(mode='predlearn')
+    for frame in clip(4):
+        res = model.step(frame)
+    assert res.losses['attn'] == 0.0 and res.losses['global'] > 0
+
+
+def test_adaptive_rule_boosts_the_rate_after_a_surprise():
+    model = make(adaptive_window=3, adaptive_ratio=1.5, adaptive_boost=100.0, lr=1e-5)
+    still = clip(1)[0]
+    rates = [model.step(still).lr for _ in range(5)]
+    assert rates[1:] == [1e-5] * 4
+    surprise = np.full_like(still, 255)
+    surprise[::2, ::3] = 0
+    assert model.step(surprise).lr == pytest.approx(1e-3)
+
+
+@pytest.mark.parametrize('kind, at_rest', [
+    ('abs_sigmoid', 0.0), ('sigmoid', 0.5), ('raw', 0.0), ('none', 1.0)])
+def test_motion_weights(kind, at_rest):
+    d = torch.tensor([0.0, -3.0, 3.0])
+    w = M.motion_weight(d, kind, 1.0)
+    assert float(w[0]) == pytest.approx(at_rest)
+    assert (w >= 0).all()
+    if kind != 'sigmoid':
+        assert float(w[1]) == pytest.approx(float(w[2]))   # symmetric in the sign
+        assert float(w[2]) > float(w[0]) or kind == 'none'
+
+
+# -- determinism and checkpoints -------------------------------------------------------------
+def test_same_seed_same_maps_other_seed_other_maps():
+    frames = clip(5)
+    runs = []
+    for seed in (3, 3, 4):
+        model = make(seed=seed)
+        runs.append([model.step(f) for f in frames])
+    for a, b in zip(runs[0], runs[1]):
+        np.testing.assert_array_equal(a.surprise_map, b.surprise_map)
+        assert a.losses == b.losses
+    assert any(not np.array_equal(a.surprise_map, c.surprise_map)
+               for a, c in zip(runs[0], runs[2]))
+
+
+@pytest.mark.parametrize('kw', [{}, {'update_encoder': True, 'optimizer': 'sgd',
+                                     'momentum': 0.9}])
+def test_checkpoint_resumes_learning_exactly(tmp_path, kw):
+    frames = clip(9)
+    model = make(real=True, adaptive_window=2, **kw)
+    for f in frames[:5]:
+        model.step(f)
+    path = str(tmp_path / 'perception.pt')
+    model.save(path)
+    expected = [model.step(f) for f in frames[5:]]
+    loaded = SurpriseModel.load(path)
+    assert loaded.cfg == model.cfg
+    got = [loaded.step(f) for f in frames[5:]]
+    for a, b in zip(expected, got):
+        np.testing.assert_array_equal(a.surprise_map, b.surprise_map)
+        assert a.losses == b.losses and a.lr == b.lr and a.frame_index == b.frame_index
+    assert same(weights(model), weights(loaded))
+
+
+# -- non-finite values -----------------------------------------------------------------------
+def test_nan_frame_skips_the_update_and_restarts_the_sequence():
+    model = make()
+    frames = clip(5)
+    for f in frames[:3]:
+        model.step(f)
+    before = weights(model)
+    bad = frames[3].astype(np.float32)
+    bad[5, 5, 1] = np.nan
+    res = model.step(bad)
+    assert res.nan_events == 1 and not res.updated
+    np.testing.assert_allclose(res.surprise_map, 1 / model.grid ** 2, rtol=1e-6)
+    assert model.state is None and model.x_prev is None
+    assert same(before, weights(model))
+    first_again = model.step(frames[4])                 # a new first frame, then learning
+    assert not first_again.updated
+    assert model.step(frames[0]).updated
+
+
+def test_nan_weights_are_restored_and_counted():
+    model = make(snapshot_every=1)
+    frames = clip(6)
+    for f in frames[:3]:
+        model.step(f)
+    good = weights(model)
+    with torch.no_grad():
+        model.predictor.head.weight[0, 0] = float('nan')
+    res = model.step(frames[3])
+    assert res.nan_events == 1 and not res.updated and res.lr == 0.0
+    assert np.isfinite(res.surprise_map).all()
+    assert res.surprise_map.sum() == pytest.approx(1.0, abs=1e-5)
+    assert same(good, weights(model))
+    assert model.state is None
+    model.step(frames[4])
+    assert model.step(frames[5]).updated
+
+
+def test_nan_loss_skips_the_update_but_keeps_the_map(monkeypatch):
+    model, twin = make(), make()
+    frames = clip(4)
+    for f in frames[:2]:
+        model.step(f)
+        twin.step(f)
+    before = weights(model)
+    real = M.global_error
+
+    def poisoned(*args, **kw):
+        loss, e = real(*args, **kw)
+        return loss * float('nan'), e
+    monkeypatch.setattr(M, 'global_error', poisoned)
+    res = model.step(frames[2])
+    assert res.nan_events == 1 and not res.updated
+    assert same(before, weights(model))
+    assert model.state is None
+    # the map of the prediction, as an unpoisoned twin makes it
+    np.testing.assert_array_equal(res.surprise_map, twin.step(frames[2]).surprise_map)
+    monkeypatch.setattr(M, 'global_error', real)
+    model.step(frames[3])
+    assert model.step(frames[0]).updated
+
+
+def test_nan_gradients_skip_the_update(monkeypatch):
+    model = make()
+    frames = clip(4)
+    for f in frames[:2]:
+        model.step(f)
+    before = weights(model)
+    real = M.attention_loss
+
+    def sharp(alpha, target, f):                         # finite value, infinite slope
+        return real(alpha, target, f) + torch.sqrt((alpha - alpha.detach()).sum())
+    monkeypatch.setattr(M, 'attention_loss', sharp)
+    res = model.step(frames[2])
+    assert res.nan_events == 1 and not res.updated
+    assert same(before, weights(model))
