@@ -1,0 +1,223 @@
+"""Reactive camera control (paper Sec. 3.3): action location -> PD -> Braccio joint commands.
+
+Subscribes ``action_location`` (PointStamped: pixel x, y and the surprise peak in z; header
+of the source frame), ``camera/camera_info`` and ``joint_states``; publishes
+``joint_commands`` (JointState, radians, header.stamp copied from the action location so the
+graph can measure frame-to-command latency). The maths is ``activeloc_ros.control``.
+"""
+import math
+import signal
+
+from geometry_msgs.msg import PointStamped
+from rclpy.duration import Duration
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, JointState
+
+from activeloc_ros.control import (
+    ArmMapping, check_pose, ControllerConfig, Intrinsics, JOINT_NAMES, PD_VARIANTS, PDConfig,
+    ReactiveController)
+from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
+from activeloc_ros.control.pd import DERIVATIVE_MODES
+from activeloc_ros.errors import ConfigError
+from activeloc_ros.ros_params import declare, in_range, non_negative, one_of, Param, positive, run
+
+
+def _pose(value) -> 'str | None':
+    try:
+        check_pose(value)
+    except ConfigError as exc:
+        return str(exc)
+    return None
+
+
+def _joint_names(value) -> 'str | None':
+    bad = [n for n in value if n not in JOINT_NAMES]
+    return f'unknown joints {bad}; joints are {list(JOINT_NAMES)}' if bad else None
+
+
+PARAMS = (
+    Param('pd_variant', '', 'A PD variant of the paper (Table 3) overriding kp/kd: '
+          + ', '.join(f'{k}={v}' for k, v in PD_VARIANTS.items()) + '; empty uses kp/kd',
+          one_of('', *PD_VARIANTS)),
+    Param('kp', 1.0, 'lambda_p of Eq. 4', non_negative),
+    Param('kd', 0.1, 'lambda_d of Eq. 4, seconds', non_negative),
+    Param('derivative', 'error', "'error': d/dt of the camera-frame error (the paper); "
+          "'target': d/dt of the action's direction", one_of(*DERIVATIVE_MODES)),
+    Param('derivative_tau', 0.0, 'Low-pass time constant on the derivative, s (0: off)',
+          non_negative),
+    Param('dead_band_deg', 2.0, 'Errors below this (per axis, degrees) are ignored',
+          in_range(0.0, 30.0)),
+    Param('watchdog_timeout', 2.0, 'No action location for this long (s): hold still',
+          positive),
+    Param('min_peak', 0.0, 'Ignore action locations whose surprise peak (z) is below this'),
+    Param('step_delay_ms', 20, 'Servo step delay, ms per degree (sets the speed limit)',
+          in_range(*STEP_DELAY_MS_RANGE)),
+    Param('home_deg', [90, 90, 45, 45, 90, 73], 'Home pose (degrees, camera straight ahead)',
+          _pose),
+    Param('pan_joint', 'base', 'Joint that pans the camera', one_of(*JOINT_NAMES)),
+    Param('pan_gain', 1.0, 'Degrees of pan joint per degree of pan (negative flips)'),
+    Param('tilt_joints', ['wrist_ver'], 'Joints that tilt the camera', _joint_names),
+    Param('tilt_gains', [1.0], 'Degrees of each tilt joint per degree of tilt'),
+    Param('latency_report_period', 10.0, 'Log frame-to-command latency p50/p95 every this '
+          'many seconds (0: only at shutdown)', non_negative),
+)
+
+
+def config_from(values: dict) -> ControllerConfig:
+    """The core's config from validated parameter values (raises ConfigError)."""
+    pd_options = dict(dead_band=math.radians(values['dead_band_deg']),
+                      derivative=values['derivative'],
+                      derivative_tau=values['derivative_tau'])
+    if values['pd_variant']:
+        pd = PDConfig.variant(values['pd_variant'], **pd_options)
+    else:
+        pd = PDConfig(kp=values['kp'], kd=values['kd'], **pd_options)
+    mapping = ArmMapping(home_deg=tuple(values['home_deg']), pan_joint=values['pan_joint'],
+                         pan_gain=values['pan_gain'], tilt_joints=tuple(values['tilt_joints']),
+                         tilt_gains=tuple(values['tilt_gains']))
+    return ControllerConfig(pd=pd, mapping=mapping, watchdog_timeout=values['watchdog_timeout'],
+                            step_delay_ms=values['step_delay_ms'], min_peak=values['min_peak'])
+
+
+def _seconds(stamp) -> float:
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+class ControllerNode(Node):
+
+    def __init__(self, **kwargs):
+        super().__init__('controller', **kwargs)
+        values = declare(self, PARAMS)
+        self.config = config_from(values)
+        self.core = ReactiveController(self.config, t0=self._now())
+        self._state = self.core.state
+        self._ignored_logged = 0
+        self._info_key = None
+
+        sensor = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+        commands = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
+        self.publisher = self.create_publisher(JointState, 'joint_commands', commands)
+        self.create_subscription(PointStamped, 'action_location', self.on_location, sensor)
+        self.create_subscription(CameraInfo, 'camera/camera_info', self.on_camera_info, sensor)
+        self.create_subscription(
+            JointState, 'joint_states', self.on_joint_states,
+            QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+        self.create_timer(0.05, self.on_watchdog)
+        if values['latency_report_period'] > 0:
+            self.create_timer(values['latency_report_period'], self.report_latency)
+        pd = self.config.pd
+        self.get_logger().info(
+            f'PD kp={pd.kp} kd={pd.kd} ({pd.derivative}), dead band '
+            f'{values["dead_band_deg"]} deg, watchdog {self.config.watchdog_timeout} s; '
+            'waiting for camera_info')
+
+    def _now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    # -- inputs ----------------------------------------------------------------------------
+
+    def on_camera_info(self, msg: CameraInfo) -> None:
+        key = (tuple(msg.k), msg.width, msg.height, tuple(msg.d), msg.distortion_model,
+               msg.binning_x, msg.binning_y, msg.roi.x_offset, msg.roi.y_offset,
+               msg.roi.width, msg.roi.height)
+        if key == self._info_key:
+            return
+        self._info_key = key
+        try:
+            intrinsics = Intrinsics.from_camera_info(
+                msg.k, msg.width, msg.height, d=msg.d, distortion_model=msg.distortion_model,
+                binning_x=msg.binning_x, binning_y=msg.binning_y,
+                roi=(msg.roi.x_offset, msg.roi.y_offset, msg.roi.width, msg.roi.height))
+        except ConfigError as exc:
+            self.get_logger().error(f'ignoring camera_info: {exc}')
+            return
+        self.core.set_intrinsics(intrinsics)
+        self.get_logger().info(
+            f'camera intrinsics fx={intrinsics.fx:.1f} fy={intrinsics.fy:.1f} '
+            f'image {intrinsics.image_size[0]:g}x{intrinsics.image_size[1]:g}')
+        self._log_state()
+
+    def on_joint_states(self, msg: JointState) -> None:
+        index = {name: i for i, name in enumerate(msg.name)}
+        if len(msg.position) != len(msg.name) or any(n not in index for n in JOINT_NAMES):
+            return
+        joints = [math.degrees(msg.position[index[n]]) for n in JOINT_NAMES]
+        t = _seconds(msg.header.stamp) or self._now()
+        self.core.observe_joints(joints, t)
+
+    def on_location(self, msg: PointStamped) -> None:
+        now = self._now()
+        t_capture = _seconds(msg.header.stamp) or now
+        command = self.core.on_location(msg.point.x, msg.point.y, t_capture, now,
+                                        peak=msg.point.z)
+        if command is not None:
+            self._publish(command.joints_deg, msg.header.stamp)
+        self._log_state()
+        self._log_ignored()
+
+    def on_watchdog(self) -> None:
+        command = self.core.tick(self._now())
+        if command is not None:
+            self._publish(command.joints_deg, self.get_clock().now().to_msg())
+        self._log_state()
+
+    # -- outputs ---------------------------------------------------------------------------
+
+    def _publish(self, joints_deg, stamp) -> None:
+        msg = JointState()
+        msg.header.stamp = stamp
+        msg.name = list(JOINT_NAMES)
+        msg.position = [math.radians(q) for q in joints_deg]
+        self.publisher.publish(msg)
+
+    def stop_on_purpose(self) -> None:
+        """Stop the arm where it is, on purpose, and make sure the command went out."""
+        command = self.core.hold(self._now())
+        self._publish(command.joints_deg, self.get_clock().now().to_msg())
+        self.publisher.wait_for_all_acked(Duration(seconds=0.5))
+        self.get_logger().info('stopped: arm told to hold '
+                               + ', '.join(f'{q:.0f}' for q in command.joints_deg))
+        self.report_latency()
+
+    def report_latency(self) -> None:
+        s = self.core.latency.summary()
+        if s['n']:
+            self.get_logger().info(
+                f'frame-to-command latency over {s["n"]} commands: '
+                f'p50 {s["p50"] * 1e3:.0f} ms, p95 {s["p95"] * 1e3:.0f} ms')
+
+    def _log_state(self) -> None:
+        state = self.core.state
+        if state == self._state:
+            return
+        messages = {
+            'idle': 'camera info received; waiting for action locations',
+            'tracking': 'tracking the action',
+            'holding': f'no action location for {self.config.watchdog_timeout} s: holding still',
+        }
+        self.get_logger().info(messages.get(state, state))
+        self._state = state
+
+    def _log_ignored(self) -> None:
+        total = sum(self.core.ignored.values())
+        if total != self._ignored_logged:
+            self._ignored_logged = total
+            detail = ', '.join(f'{k}: {v}' for k, v in sorted(self.core.ignored.items()))
+            self.get_logger().warning(f'ignored action locations ({detail})',
+                                      throttle_duration_sec=5.0)
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def main(args=None) -> int:
+    # Ctrl-C and kill both stop the arm on purpose (even where SIGINT came in ignored).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, _interrupt)
+    return run(ControllerNode, args, on_stop=lambda node: node.stop_on_purpose())
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,183 @@
+"""The controller node in one process: topics, stamps, bad input, watchdog, closed loop."""
+import math
+import time
+
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import PointStamped
+import pytest
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, JointState
+
+from activeloc_ros.control import HOME_DEG, JOINT_NAMES, within_limits
+from activeloc_ros.errors import ConfigError
+from conftest import params_args
+
+FX, CX, CY = 600.0, 319.5, 239.5
+
+
+def spin_until(executor, condition, timeout):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and not condition():
+        executor.spin_once(timeout_sec=0.02)
+    return condition()
+
+
+def camera_info() -> CameraInfo:
+    msg = CameraInfo(width=640, height=480, distortion_model='plumb_bob')
+    msg.k = [FX, 0.0, CX, 0.0, FX, CY, 0.0, 0.0, 1.0]
+    msg.d = [0.0] * 5
+    return msg
+
+
+def degrees(msg: JointState) -> tuple[float, ...]:
+    return tuple(math.degrees(p) for p in msg.position)
+
+
+class Probe:
+    """Plays camera, perception and arm around the controller."""
+
+    def __init__(self, context):
+        self.node = Node('probe', context=context)
+        best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+        self.info = self.node.create_publisher(CameraInfo, 'camera/camera_info', best_effort)
+        self.location = self.node.create_publisher(PointStamped, 'action_location', 10)
+        self.states = self.node.create_publisher(JointState, 'joint_states', 10)
+        self.commands: list[JointState] = []
+        self.node.create_subscription(JointState, 'joint_commands', self.commands.append,
+                                      QoSProfile(depth=100))
+
+    def send_location(self, u, v, stamp_s, peak=1.0):
+        msg = PointStamped()
+        msg.header.stamp = Time(sec=int(stamp_s), nanosec=int(stamp_s % 1 * 1e9))
+        msg.point.x, msg.point.y, msg.point.z = float(u), float(v), float(peak)
+        self.location.publish(msg)
+
+    def now(self) -> float:
+        return self.node.get_clock().now().nanoseconds * 1e-9
+
+
+@pytest.fixture
+def graph(context):
+    from activeloc_ros.controller_node import ControllerNode
+    made = []
+
+    def make(*overrides):
+        controller = ControllerNode(context=context,
+                                    cli_args=params_args('controller', *overrides))
+        probe = Probe(context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(controller)
+        executor.add_node(probe.node)
+        made.append((executor, controller, probe))
+        assert spin_until(executor, lambda: probe.info.get_subscription_count() > 0
+                          and probe.node.count_publishers('joint_commands') > 0, 5.0)
+        probe.info.publish(camera_info())
+        assert spin_until(executor, lambda: controller.core.intrinsics is not None, 5.0)
+        return executor, controller, probe
+
+    yield make
+    for executor, controller, probe in made:
+        executor.shutdown()
+        controller.destroy_node()
+        probe.node.destroy_node()
+
+
+def test_a_location_becomes_a_command_with_its_stamp(graph):
+    executor, controller, probe = graph()
+    stamp = probe.now() - 0.05
+    probe.send_location(CX - FX * math.tan(math.radians(10.0)), CY, stamp)  # 10 deg left
+    assert spin_until(executor, lambda: probe.commands, 5.0)
+    cmd = probe.commands[0]
+    assert list(cmd.name) == list(JOINT_NAMES)
+    assert cmd.header.stamp.sec + cmd.header.stamp.nanosec * 1e-9 == pytest.approx(stamp)
+    joints = degrees(cmd)
+    assert within_limits(joints, tol=1e-6)
+    assert HOME_DEG[0] < joints[0] <= HOME_DEG[0] + 10.0 + 1e-6  # turning left, base up
+    assert joints[1:] == pytest.approx(HOME_DEG[1:])
+
+
+def test_nan_and_absurd_locations_are_ignored(graph):
+    executor, controller, probe = graph()
+    t = probe.now()
+    for i, (u, v) in enumerate([(math.nan, 10.0), (1e12, 10.0), (-5000.0, 10.0)]):
+        probe.send_location(u, v, t + i * 0.01)
+        assert spin_until(executor, lambda: sum(controller.core.ignored.values()) > i, 5.0)
+    probe.send_location(100.0, 100.0, t + 1.0)
+    assert spin_until(executor, lambda: probe.commands, 5.0)
+    assert len(probe.commands) == 1 and probe.commands[0].header.stamp.sec == int(t + 1.0)
+
+
+def test_watchdog_holds_once_when_locations_stop(graph):
+    executor, controller, probe = graph('watchdog_timeout:=0.3')
+    probe.send_location(100.0, 100.0, probe.now())
+    assert spin_until(executor, lambda: len(probe.commands) == 1, 5.0)
+    assert spin_until(executor, lambda: controller.core.state == 'holding', 5.0)
+    spin_until(executor, lambda: len(probe.commands) > 2, 1.0)  # give drift a chance
+    assert len(probe.commands) == 2
+    assert degrees(probe.commands[1]) == pytest.approx(degrees(probe.commands[0]))
+
+
+@pytest.mark.parametrize('override, message', [
+    ('kp:=-1.0', 'kp'), ('step_delay_ms:=5', 'step_delay_ms'),
+    ('pd_variant:=pid', 'pd_variant'), ('home_deg:=[90,5,45,45,90,73]', 'home_deg')])
+def test_bad_parameters_are_refused_by_name(context, override, message):
+    from activeloc_ros.controller_node import ControllerNode
+    with pytest.raises(ConfigError, match=message):
+        ControllerNode(context=context, cli_args=params_args('controller', override))
+
+
+def test_pd_variant_overrides_the_gains(context):
+    from activeloc_ros.controller_node import ControllerNode
+    node = ControllerNode(context=context, cli_args=params_args('controller',
+                                                                'pd_variant:=low_p'))
+    try:
+        assert (node.config.pd.kp, node.config.pd.kd) == (0.5, 0.1)
+    finally:
+        node.destroy_node()
+
+
+def test_closed_loop_with_the_sim_arm_centres_a_still_action(context):
+    """Controller + simulated arm + a virtual camera looking at an action 15 deg left and
+    8 deg up: the arm turns until the action is centred (within the dead band)."""
+    from activeloc_ros.arm_node import ArmNode
+    from activeloc_ros.controller_node import ControllerNode
+    controller = ControllerNode(context=context, cli_args=params_args('controller'))
+    arm = ArmNode(context=context, cli_args=params_args('arm', 'backend:=sim'))
+    probe = Probe(context)
+    pose = {}
+
+    def on_state(msg):
+        pose['joints'] = degrees(msg)
+
+    probe.node.create_subscription(JointState, 'joint_states', on_state, 10)
+    action_pan, action_tilt = math.radians(15.0), math.radians(8.0)
+
+    def frame():  # what the camera sees now (tilt small: pan/tilt errors add up)
+        if 'joints' not in pose:
+            return
+        pan, tilt = controller.config.mapping.pan_tilt(pose['joints'])
+        u = CX - FX * math.tan(action_pan - pan)
+        v = CY - FX * math.tan(action_tilt - tilt) / math.cos(action_pan - pan)
+        probe.send_location(u, v, probe.now())
+
+    probe.node.create_timer(0.1, frame)
+    probe.node.create_timer(1.0, lambda: probe.info.publish(camera_info()))
+    executor = SingleThreadedExecutor(context=context)
+    for node in (controller, arm, probe.node):
+        executor.add_node(node)
+    try:
+        def centred():
+            if len(probe.commands) < 5 or 'joints' not in pose:
+                return False
+            pan, tilt = controller.config.mapping.pan_tilt(pose['joints'])
+            return (abs(math.degrees(pan - action_pan)) < 2.5
+                    and abs(math.degrees(tilt - action_tilt)) < 2.5)
+
+        assert spin_until(executor, centred, 15.0), pose
+        assert all(within_limits(degrees(c), tol=1e-6) for c in probe.commands)
+    finally:
+        executor.shutdown()
+        for node in (controller, arm, probe.node):
+            node.destroy_node()
