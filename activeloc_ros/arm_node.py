@@ -1,0 +1,291 @@
+"""The Braccio arm: follows ``joint_commands`` and publishes ``joint_states`` (radians).
+
+Back ends (parameter ``backend``): ``sim`` moves a simulated Braccio at the servos' speed in
+whole degrees (``control.SimArm``), the arm the benchmarks use; ``serial`` drives
+``braccio_serial.ino`` over a serial port (``control.serial_link.BraccioLink``) and publishes
+the state it echoes, surviving a silent, noisy or vanishing port. On Ctrl-C the arm stops
+where it is, or goes home slowly (``stop_mode``), before the node ends.
+"""
+import math
+import signal
+import threading
+import time
+
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+
+from activeloc_ros.control import check_pose, clamp_to_limits, JOINT_NAMES, SimArm
+from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
+from activeloc_ros.control.serial_link import BraccioLink
+from activeloc_ros.errors import ConfigError
+from activeloc_ros.ros_params import declare, in_range, one_of, Param, positive, run
+
+HOME = [90, 90, 45, 45, 90, 73]
+
+
+def _pose(value) -> 'str | None':
+    try:
+        check_pose(value)
+    except ConfigError as exc:
+        return str(exc)
+    return None
+
+
+PARAMS = (
+    Param('backend', 'sim', "'sim': simulated servos; 'serial': the Arduino sketch",
+          one_of('sim', 'serial'), read_only=True),
+    Param('state_rate', 50.0, 'joint_states publishing rate, Hz', in_range(1.0, 500.0)),
+    Param('step_delay_ms', 20, 'Servo step delay, ms per degree (sim; must match the sketch)',
+          in_range(*STEP_DELAY_MS_RANGE)),
+    Param('home_deg', HOME, 'Home pose, degrees', _pose),
+    Param('sim_start_deg', HOME, 'Pose the simulated arm starts in, degrees', _pose),
+    Param('stop_mode', 'hold', "On shutdown: 'hold' stops where it is, 'home' goes home "
+          'slowly', one_of('hold', 'home')),
+    Param('home_speed_deg_s', 15.0, 'Joint speed when going home at shutdown, deg/s',
+          in_range(1.0, 100.0)),
+    Param('stop_timeout', 10.0, 'Longest time the shutdown may take, s', positive),
+    Param('port', '/dev/ttyACM0', 'Serial device of the Arduino (prefer '
+          '/dev/serial/by-id/...)', read_only=True),
+    Param('baud', 115200, 'Serial baud rate', one_of(9600, 19200, 38400, 57600, 115200),
+          read_only=True),
+    Param('poll_period', 0.02, 'Seconds between serial requests', in_range(0.005, 1.0)),
+    Param('silence_timeout', 1.0, 'No valid frame for this long: the link is lost, s',
+          positive),
+    Param('reconnect_period', 1.0, 'Seconds between attempts to re-open the port', positive),
+    Param('handshake_timeout', 4.0, 'Seconds to wait for <ok> after opening (the Arduino '
+          'resets on open)', positive),
+)
+
+
+def parse_command(msg: JointState, current: tuple[float, ...]) -> tuple[float, ...] | None:
+    """Six target angles in degrees from a JointState (radians, any subset of the joints by
+    name, or all six in order without names); None when malformed or not finite."""
+    if not msg.name:
+        if len(msg.position) != len(JOINT_NAMES):
+            return None
+        radians = dict(zip(JOINT_NAMES, msg.position))
+    else:
+        if len(msg.name) != len(msg.position) or any(n not in JOINT_NAMES for n in msg.name):
+            return None
+        radians = dict(zip(msg.name, msg.position))
+    if not all(math.isfinite(r) for r in radians.values()):
+        return None
+    return tuple(math.degrees(radians[n]) if n in radians else q
+                 for n, q in zip(JOINT_NAMES, current))
+
+
+def ramp(current, goal, max_step: float) -> tuple[float, ...]:
+    """Move every joint at most ``max_step`` degrees from ``current`` towards ``goal``."""
+    return tuple(g if abs(g - q) <= max_step else q + math.copysign(max_step, g - q)
+                 for q, g in zip(current, goal))
+
+
+class ArmNode(Node):
+
+    def __init__(self, **kwargs):
+        super().__init__('arm', **kwargs)
+        values = declare(self, PARAMS)
+        self.values = values
+        self.backend = values['backend']
+        self.home = tuple(float(q) for q in values['home_deg'])
+        self.rejected = 0
+        self.clamped = 0
+        self.stopping = False
+        self._stop_goal: tuple[float, ...] | None = None
+        self._stop_pose: tuple[float, ...] | None = None
+        self._stop_t = 0.0
+        self._problems_logged = 0
+        self._lock = threading.RLock()  # stop_on_purpose may come from another thread
+        self._stopped = threading.Event()
+
+        if self.backend == 'sim':
+            self.sim = SimArm(values['sim_start_deg'], self._now(),
+                              step_delay_ms=values['step_delay_ms'])
+            self.link = None
+        else:
+            self.sim = None
+            self.link = BraccioLink(
+                values['port'], baud=values['baud'], poll_period=values['poll_period'],
+                silence_timeout=values['silence_timeout'],
+                reconnect_period=values['reconnect_period'],
+                handshake_timeout=values['handshake_timeout'])
+            self.create_timer(values['poll_period'], self.on_poll)
+
+        self.publisher = self.create_publisher(JointState, 'joint_states', 10)
+        self.create_subscription(JointState, 'joint_commands', self.on_command,
+                                 QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
+        self.create_timer(1.0 / values['state_rate'], self.on_state_timer)
+        where = values['port'] if self.link else 'simulation'
+        self.get_logger().info(f'Braccio arm ({self.backend}: {where}), stop mode '
+                               f'{values["stop_mode"]}')
+
+    def _now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    # -- the arm, whichever back end -------------------------------------------------------
+
+    def joints(self) -> tuple[float, ...] | None:
+        """Where the arm is (degrees), or None while the serial link has no fresh state."""
+        if self.sim is not None:
+            return tuple(float(q) for q in self.sim.advance(self._now()))
+        if self.link.fresh(time.monotonic()):
+            return tuple(float(q) for q in self.link.joints)
+        return None
+
+    def _send(self, target_deg) -> None:
+        if self.sim is not None:
+            self.sim.command(target_deg, self._now())
+        else:
+            self.link.command(target_deg)
+
+    def _target(self) -> tuple[float, ...]:
+        if self.sim is not None:
+            return tuple(float(q) for q in self.sim.target)
+        if self.link.target is not None:
+            return tuple(float(q) for q in self.link.target)
+        return self.joints() or self.home
+
+    # -- callbacks -------------------------------------------------------------------------
+
+    def on_command(self, msg: JointState) -> None:
+        with self._lock:
+            self._on_command(msg)
+
+    def _on_command(self, msg: JointState) -> None:
+        if self.stopping:
+            return
+        target = parse_command(msg, self._target())
+        if target is None:
+            self.rejected += 1
+            self.get_logger().warning(f'rejected malformed joint commands ({self.rejected} so '
+                                      'far)', throttle_duration_sec=5.0)
+            return
+        safe = clamp_to_limits(target)
+        if safe != target:
+            self.clamped += 1
+            self.get_logger().warning(f'clamped joint commands outside the limits '
+                                      f'({self.clamped} so far)', throttle_duration_sec=5.0)
+        self._send(safe)
+
+    def on_poll(self) -> None:
+        with self._lock:
+            events = self.link.poll(time.monotonic())
+        for event in events:
+            self.get_logger().info(event)
+        problems = self.link.stats.problems
+        if problems != self._problems_logged:
+            self._problems_logged = problems
+            s = self.link.stats
+            self.get_logger().warning(
+                f'serial link: ignored {s.noise_bytes} noise bytes, {s.bad_frames} bad '
+                f'frames, {s.rejected} refused commands (last: {s.last_bad or "-"})',
+                throttle_duration_sec=5.0)
+
+    def on_state_timer(self) -> None:
+        with self._lock:
+            if self.stopping:
+                self._stop_step()
+                if self.stop_done():
+                    self._stopped.set()
+            joints = self.joints()
+        if joints is None:
+            return
+        msg = JointState()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.name = list(JOINT_NAMES)
+        msg.position = [math.radians(q) for q in joints]
+        self.publisher.publish(msg)
+
+    # -- stopping on purpose ---------------------------------------------------------------
+
+    def begin_stop(self) -> None:
+        """Start the on-purpose stop: ignore commands, then hold here or ramp home."""
+        self.stopping = True
+        here = self.joints()
+        if here is None:
+            self._stop_goal = None
+            self.get_logger().warning('stopping without a fresh arm state: nothing to hold')
+            return
+        self._stop_pose = here
+        self._stop_t = self._now()
+        self._stop_goal = self.home if self.values['stop_mode'] == 'home' else here
+        self._send(here)
+
+    def _stop_step(self) -> None:
+        if self._stop_goal is None or self._stop_pose == self._stop_goal:
+            return
+        now = self._now()
+        step = self.values['home_speed_deg_s'] * max(0.0, now - self._stop_t)
+        self._stop_t = now
+        self._stop_pose = ramp(self._stop_pose, self._stop_goal, step)
+        self._send(self._stop_pose)
+
+    def stop_done(self) -> bool:
+        """True once the arm holds its stop goal (or there is nothing to wait for)."""
+        if self._stop_goal is None:
+            return True
+        here = self.joints()
+        if here is None:
+            return self.link is not None and self.link.state != 'connected'
+        goal = tuple(int(round(q)) for q in self._stop_goal)
+        if self.sim is not None:
+            return self.sim.joints == goal and self.sim.target == goal
+        return (self.link.target == goal and not self.link.busy
+                and tuple(int(q) for q in here) == goal)
+
+    def stop_on_purpose(self, executor=None) -> bool:
+        """Stop on purpose while the context is alive: hold here or ramp home, and wait
+        (at most ``stop_timeout``) until the arm got there.
+
+        :param executor: spin this one; by default a private one, unless the node belongs
+            to an executor that another thread spins (an in-process graph): then its timers
+            do the work and this call only waits.
+        """
+        with self._lock:
+            self.begin_stop()
+        timeout = self.values['stop_timeout']
+        try:
+            spun_elsewhere = self.executor is not None and self in self.executor.get_nodes()
+            if executor is None and spun_elsewhere:
+                self._stopped.wait(timeout)
+            else:
+                own = executor is None
+                if own:
+                    executor = SingleThreadedExecutor(context=self.context)
+                    executor.add_node(self)
+                deadline = time.monotonic() + timeout
+                try:
+                    while not self._stopped.is_set() and time.monotonic() < deadline:
+                        executor.spin_once(timeout_sec=0.02)
+                finally:
+                    if own:
+                        executor.remove_node(self)
+        except KeyboardInterrupt:
+            self.get_logger().warning('second interrupt: stopping at once')
+        with self._lock:
+            done = self.stop_done()
+            where = self.joints()
+            if self.link is not None:
+                self.link.close()
+        self.get_logger().info(
+            f'stopped ({self.values["stop_mode"]}) at '
+            + (', '.join(f'{q:.0f}' for q in where) if where else 'an unknown pose')
+            + ('' if done else ' (timed out)'))
+        return done
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def main(args=None) -> int:
+    # Ctrl-C and kill both stop the arm on purpose (even where SIGINT came in ignored).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, _interrupt)
+    return run(ArmNode, args, on_stop=lambda node: node.stop_on_purpose())
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

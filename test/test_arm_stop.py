@@ -1,0 +1,130 @@
+"""Ctrl-C on the real node processes: the arm stops on purpose before the context ends."""
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+
+from activeloc_ros.control import HOME_DEG, JOINT_NAMES
+from activeloc_ros.control.emulator import ArduinoEmulator
+from conftest import params_args, REPO
+
+
+def spin_until(executor, condition, timeout):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and not condition():
+        executor.spin_once(timeout_sec=0.02)
+    return condition()
+
+
+def command(joints_deg) -> JointState:
+    return JointState(name=list(JOINT_NAMES), position=[math.radians(q) for q in joints_deg])
+
+
+@pytest.fixture
+def probe(context):
+    node = Node('stop_probe', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    yield node, executor
+    executor.shutdown()
+    node.destroy_node()
+
+
+@pytest.fixture
+def launch(tmp_path):
+    """Start `activeloc_ros.<module>` with its params file; stop leftovers at teardown."""
+    started = []
+
+    def start(module: str, *overrides: str) -> subprocess.Popen:
+        log = open(tmp_path / f'{module}.log', 'w')
+        process = subprocess.Popen(
+            [sys.executable, '-m', f'activeloc_ros.{module}',
+             *params_args(module.removesuffix('_node'), *overrides)],
+            cwd=REPO, env=dict(os.environ, PYTHONUNBUFFERED='1'), stdout=log,
+            stderr=subprocess.STDOUT)
+        started.append((process, log))
+        return process
+
+    yield start
+    for process, log in started:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+        log.close()
+
+
+def interrupt(process, executor, timeout=15.0) -> int:
+    """Ctrl-C, spinning our side meanwhile so the node's last messages arrive."""
+    process.send_signal(signal.SIGINT)
+    spin_until(executor, lambda: process.poll() is not None, timeout)
+    return process.wait(timeout=1.0)
+
+
+def test_controller_holds_on_ctrl_c(probe, launch, tmp_path):
+    node, executor = probe
+    commands = []
+    node.create_subscription(JointState, 'joint_commands', commands.append,
+                             QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    states = node.create_publisher(JointState, 'joint_states', 10)
+    process = launch('controller_node')
+    assert spin_until(executor, lambda: node.count_publishers('joint_commands') > 0
+                      and states.get_subscription_count() > 0, 20.0)
+    where = (120.0, 90.0, 45.0, 60.0, 90.0, 73.0)
+    msg = command(where)
+    msg.header.stamp = node.get_clock().now().to_msg()
+    node.create_timer(0.05, lambda: states.publish(msg))  # the arm is here: hold it here
+    spin_until(executor, lambda: False, 1.0)  # (the other side may discover us later)
+    assert interrupt(process, executor) == 0, (tmp_path / 'controller_node.log').read_text()
+    assert spin_until(executor, lambda: commands, 2.0)
+    assert [math.degrees(p) for p in commands[-1].position] == pytest.approx(where)
+    assert 'stopped: arm told to hold' in (tmp_path / 'controller_node.log').read_text()
+
+
+@pytest.mark.parametrize('mode', ['hold', 'home'])
+def test_serial_arm_stops_on_purpose_on_ctrl_c(probe, launch, tmp_path, mode):
+    node, executor = probe
+    pub = node.create_publisher(JointState, 'joint_commands',
+                                QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
+    start = (40, 90, 45, 45, 90, 73)
+    with ArduinoEmulator(path=str(tmp_path / 'ttyBRACCIO'), start_deg=start,
+                         step_delay_ms=30) as emulator:
+        process = launch('arm_node', 'backend:=serial', f'port:={emulator.path}',
+                         f'stop_mode:={mode}', 'home_speed_deg_s:=60.0')
+        assert spin_until(executor, lambda: pub.get_subscription_count() > 0, 20.0)
+        assert spin_until(executor, lambda: any(f.kind == 'r' for f in emulator.received), 10.0)
+        pub.publish(command((170.0,) + HOME_DEG[1:]))  # a long move, 4 s at 30 ms/deg
+        assert spin_until(executor, lambda: emulator.joints[0] > 50, 10.0)
+        log = tmp_path / 'arm_node.log'
+        base_at_interrupt = emulator.joints[0]
+        assert interrupt(process, executor) == 0, log.read_text()
+        assert f'stopped ({mode})' in log.read_text()
+        last = emulator.host_writes()[-1]
+        if mode == 'hold':  # stopped on the way, where it was (its echo is <= 20 ms old)
+            assert base_at_interrupt - 2 <= last[0] < 170
+        else:
+            assert last == HOME_DEG
+        deadline = time.monotonic() + 5.0  # the emulated servos settle on the last target
+        while emulator.joints != last and time.monotonic() < deadline:
+            spin_until(executor, lambda: emulator.joints == last, 0.1)
+        assert emulator.joints == last
+
+
+def test_sim_arm_goes_home_slowly_on_ctrl_c(probe, launch, tmp_path):
+    node, executor = probe
+    states = []
+    node.create_subscription(JointState, 'joint_states', states.append, QoSProfile(depth=500))
+    process = launch('arm_node', 'backend:=sim', 'stop_mode:=home',
+                     'sim_start_deg:=[60,90,45,45,90,73]', 'home_speed_deg_s:=30.0')
+    assert spin_until(executor, lambda: states, 20.0)
+    assert interrupt(process, executor) == 0
+    bases = [round(math.degrees(s.position[0])) for s in states]
+    assert bases[-1] == HOME_DEG[0]
+    assert bases == sorted(bases) and len(set(bases)) > 10  # on its way, step by step
