@@ -7,6 +7,7 @@ graph can measure frame-to-command latency). The maths is ``activeloc_ros.contro
 """
 import math
 import signal
+import threading
 
 from geometry_msgs.msg import PointStamped
 from rclpy.duration import Duration
@@ -94,6 +95,8 @@ class ControllerNode(Node):
         self._state = self.core.state
         self._ignored_logged = 0
         self._info_key = None
+        self._lock = threading.Lock()  # stop_on_purpose may come from another thread
+        self.stopped = False
 
         sensor = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
         commands = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
@@ -139,6 +142,10 @@ class ControllerNode(Node):
         self._log_state()
 
     def on_joint_states(self, msg: JointState) -> None:
+        with self._lock:
+            self._on_joint_states(msg)
+
+    def _on_joint_states(self, msg: JointState) -> None:
         index = {name: i for i, name in enumerate(msg.name)}
         if len(msg.position) != len(msg.name) or any(n not in index for n in JOINT_NAMES):
             return
@@ -147,19 +154,23 @@ class ControllerNode(Node):
         self.core.observe_joints(joints, t)
 
     def on_location(self, msg: PointStamped) -> None:
-        now = self._now()
-        t_capture = _seconds(msg.header.stamp) or now
-        command = self.core.on_location(msg.point.x, msg.point.y, t_capture, now,
-                                        peak=msg.point.z)
-        if command is not None:
-            self._publish(command.joints_deg, msg.header.stamp)
+        with self._lock:
+            if self.stopped:
+                return
+            now = self._now()
+            t_capture = _seconds(msg.header.stamp) or now
+            command = self.core.on_location(msg.point.x, msg.point.y, t_capture, now,
+                                            peak=msg.point.z)
+            if command is not None:
+                self._publish(command.joints_deg, msg.header.stamp)
         self._log_state()
         self._log_ignored()
 
     def on_watchdog(self) -> None:
-        command = self.core.tick(self._now())
-        if command is not None:
-            self._publish(command.joints_deg, self.get_clock().now().to_msg())
+        with self._lock:
+            command = None if self.stopped else self.core.tick(self._now())
+            if command is not None:
+                self._publish(command.joints_deg, self.get_clock().now().to_msg())
         self._log_state()
 
     # -- outputs ---------------------------------------------------------------------------
@@ -172,9 +183,12 @@ class ControllerNode(Node):
         self.publisher.publish(msg)
 
     def stop_on_purpose(self) -> None:
-        """Stop the arm where it is, on purpose, and make sure the command went out."""
-        command = self.core.hold(self._now())
-        self._publish(command.joints_deg, self.get_clock().now().to_msg())
+        """Stop the arm where it is, on purpose, make sure the command went out, and send
+        no more (safe to call while another thread spins the node)."""
+        with self._lock:
+            self.stopped = True
+            command = self.core.hold(self._now())
+            self._publish(command.joints_deg, self.get_clock().now().to_msg())
         self.publisher.wait_for_all_acked(Duration(seconds=0.5))
         self.get_logger().info('stopped: arm told to hold '
                                + ', '.join(f'{q:.0f}' for q in command.joints_deg))

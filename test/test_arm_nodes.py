@@ -1,6 +1,7 @@
 """The arm node in one process: the sim back end's kinematics and the serial back end
 against the emulated sketch (noise, a vanishing port), and the on-purpose stop."""
 import math
+import threading
 import time
 
 import pytest
@@ -145,3 +146,25 @@ def test_bad_parameters_are_refused(context, override):
     from activeloc_ros.arm_node import ArmNode
     with pytest.raises(ConfigError):
         ArmNode(context=context, cli_args=params_args('arm', override))
+
+
+def test_stop_on_purpose_while_another_thread_spins(arm_graph):
+    """As in bringup --in-process: the executor keeps running in its thread, the call waits."""
+    executor, arm, probe = arm_graph('backend:=sim', 'stop_mode:=home',
+                                     'sim_start_deg:=[75,90,45,45,90,73]',
+                                     'home_speed_deg_s:=60.0')
+    assert spin_until(executor, lambda: probe.joints is not None, 5.0)
+    halt = threading.Event()
+
+    def spin():
+        while not halt.is_set():
+            executor.spin_once(timeout_sec=0.02)
+
+    thread = threading.Thread(target=spin)
+    thread.start()
+    try:
+        assert arm.stop_on_purpose()
+        assert arm.sim.joints == HOME_DEG
+    finally:
+        halt.set()
+        thread.join()

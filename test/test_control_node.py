@@ -181,3 +181,15 @@ def test_closed_loop_with_the_sim_arm_centres_a_still_action(context):
         executor.shutdown()
         for node in (controller, arm, probe.node):
             node.destroy_node()
+
+
+def test_stop_on_purpose_holds_then_ignores_locations(graph):
+    executor, controller, probe = graph()
+    probe.send_location(100.0, 100.0, probe.now())
+    assert spin_until(executor, lambda: len(probe.commands) == 1, 5.0)
+    controller.stop_on_purpose()
+    assert spin_until(executor, lambda: len(probe.commands) == 2, 5.0)
+    assert degrees(probe.commands[1]) == pytest.approx(degrees(probe.commands[0]))
+    probe.send_location(300.0, 100.0, probe.now())
+    spin_until(executor, lambda: len(probe.commands) > 2, 0.5)
+    assert len(probe.commands) == 2 and controller.core.ignored == {}
