@@ -9,7 +9,7 @@ from typing import Any, Callable, Sequence
 
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 import rclpy
-from rclpy.exceptions import InvalidParameterValueException
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException
 
 from activeloc_ros.errors import ActivelocError, ConfigError
@@ -77,6 +77,8 @@ def declare(node, params: Sequence[Param]) -> dict[str, Any]:
         except InvalidParameterValueException as exc:
             reason = exc.args[2] if len(exc.args) == 3 else str(exc)
             raise ConfigError(f'node {node.get_name()!r}: {reason}') from exc
+        except InvalidParameterTypeException as exc:  # e.g. kp:=1 for a double
+            raise ConfigError(f'node {node.get_name()!r}: {exc}') from exc
     return {p.name: node.get_parameter(p.name).value for p in params}
 
 

@@ -120,7 +120,7 @@ def test_watchdog_holds_once_when_locations_stop(graph):
 
 
 @pytest.mark.parametrize('override, message', [
-    ('kp:=-1.0', 'kp'), ('step_delay_ms:=5', 'step_delay_ms'),
+    ('kp:=-1.0', 'kp'), ('kp:=1', 'kp'), ('step_delay_ms:=5', 'step_delay_ms'),
     ('pd_variant:=pid', 'pd_variant'), ('home_deg:=[90,5,45,45,90,73]', 'home_deg')])
 def test_bad_parameters_are_refused_by_name(context, override, message):
     from activeloc_ros.controller_node import ControllerNode
