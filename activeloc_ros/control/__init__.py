@@ -1,7 +1,17 @@
 """Reactive control and the Braccio arm, free of ROS (paper Sec. 3.3, Eq. 4).
 
 The same objects run in the ROS nodes and in the closed-loop benchmark; every function that
-depends on time takes it as an argument.
+depends on time takes it as an argument. A loop in simulated time::
+
+    ctl = ReactiveController(ControllerConfig(pd=PDConfig.variant('paper')), t0=0.0)
+    ctl.set_intrinsics(Intrinsics.from_camera_info(k, width, height))
+    arm = SimArm(HOME_DEG, 0.0, step_delay_ms=20)
+    for t, (u, v) in frames:                      # action pixel seen at capture time t
+        ctl.observe_joints(arm.advance(t), t)     # where the camera was when it looked
+        cmd = ctl.on_location(u, v, t, t + latency) or ctl.tick(t + latency)
+        if cmd:
+            arm.command(cmd.joints_deg, cmd.t)
+    pan, tilt = ctl.mapping.pan_tilt(arm.joints)  # radians, for the angular error metric
 """
 from activeloc_ros.control.braccio import (
     ArmMapping, check_pose, clamp_to_limits, HOME_DEG, JOINT_NAMES, JointGuard, LIMITS_DEG,
