@@ -121,7 +121,8 @@ event = st.one_of(plausible, st.one_of(  # half of the events are plausible loca
 
 
 @settings(max_examples=300, deadline=None)
-@given(events=st.lists(event, min_size=10, max_size=60), variant=st.sampled_from(sorted(PD_VARIANTS)),
+@given(events=st.lists(event, min_size=10, max_size=60),
+       variant=st.sampled_from(sorted(PD_VARIANTS)),
        derivative=st.sampled_from(['error', 'target']), step=st.integers(10, 30),
        tau=st.sampled_from([0.0, 0.05]),
        mapping=st.sampled_from([ArmMapping(), ArmMapping(pan_gain=-3.0, tilt_gains=(-2.0,)),

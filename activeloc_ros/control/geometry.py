@@ -40,7 +40,8 @@ class Intrinsics:
         if not all(math.isfinite(v) for v in values) or self.fx <= 0 or self.fy <= 0:
             raise ConfigError(f'camera intrinsics need finite fx, fy > 0, got {self}')
         if self.width <= 0 or self.height <= 0:
-            raise ConfigError(f'camera image size must be positive, got {self.width}x{self.height}')
+            raise ConfigError(
+                f'camera image size must be positive, got {self.width}x{self.height}')
         object.__setattr__(self, 'binning_x', max(1, int(self.binning_x)))
         object.__setattr__(self, 'binning_y', max(1, int(self.binning_y)))
 
