@@ -15,6 +15,7 @@ setup(
         ('share/' + package_name + '/bags/vtest', glob('bags/vtest/*')),
         ('share/' + package_name + '/arduino/braccio_serial',
          glob('activeloc_ros/arduino/braccio_serial/*.ino')),
+        ('share/' + package_name + '/arduino', ['activeloc_ros/arduino/README.md']),
     ],
     package_data={package_name: ['arduino/braccio_serial/*.ino']},
     python_requires='>=3.10',

@@ -173,7 +173,7 @@ def test_bringup_processes_echo_and_record(tmp_path, graph_env):
     assert '14x14 map' in echo.stdout
     assert bringup.returncode == 0, out
     assert 'summary: stopped after' in out and 'source ended' in out
-    assert 'node exit codes: arm 0, controller 0, perception 0, camera 0' in out
+    assert 'node exit codes: camera 0, perception 0, controller 0, arm 0' in out
 
     from rosbags.highlevel import AnyReader
     with AnyReader([record]) as reader:
