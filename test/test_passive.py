@@ -224,3 +224,26 @@ def test_real_model_runs_on_a_synthetic_sequence(tmp_path, capsys):
     assert model['method'] == 'model:efficientnet_lite0/full' and model['frames'] == 2
     assert 0.0 <= model['hit_rate'] <= 1.0 and 0.5 <= model['auc_judd'] <= 1.0
     assert model['config']['pretrained'] is False
+
+
+def test_auc_jitter_breaks_the_ties_of_a_one_hot_map(tmp_path):
+    class OneHotCorner:
+        name = 'corner'
+
+        def reset(self, sequence):
+            pass
+
+        def step(self, image):
+            heat = np.zeros((14, 14))
+            heat[0, 0] = 1.0
+            return heat
+
+        def peak(self, heat, image_wh):
+            return passive.metrics.peak_point(heat, image_wh)
+
+    seq = data.load_sequence(make_moving_square(tmp_path, n=8))
+    plain, _ = passive.run_sequence(seq, [OneHotCorner()], max_frames=None, warmup=1)
+    assert plain['corner'].aucs == [0.5] * 7  # the square never reaches cell (0, 0)
+    jittered, _ = passive.run_sequence(seq, [OneHotCorner()], max_frames=None, warmup=1,
+                                       auc_jitter=True)
+    assert all(0.5 < a < 1.0 for a in jittered['corner'].aucs)

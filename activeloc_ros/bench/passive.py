@@ -181,10 +181,16 @@ class Tally:
 
 def run_sequence(sequence: data.Sequence, methods: list[Method], *, max_frames: int | None,
                  warmup: int, progress: Progress | None = None,
-                 frames_out: list | None = None) -> tuple[dict[str, Tally], float]:
+                 frames_out: list | None = None, auc_jitter: bool = False,
+                 ) -> tuple[dict[str, Tally], float]:
     """Stream one sequence through every method; returns the tallies and the mean chance
-    hit rate of its scored frames."""
+    hit rate of its scored frames.
+
+    :param auc_jitter: break AUC ties at random (the MIT code's `jitter`), seeded per
+        sequence; off = ties count against the map, as NOTES.md section 5 reads.
+    """
     tallies = {m.name: Tally() for m in methods}
+    rng = np.random.default_rng(zlib.crc32(sequence.name.encode())) if auc_jitter else None
     for m in methods:
         m.reset(sequence)
     chance = []
@@ -206,7 +212,7 @@ def run_sequence(sequence: data.Sequence, methods: list[Method], *, max_frames: 
                 continue
             point = m.peak(heat, image_wh)
             hit = metrics.is_hit(point, truth.actors, cell_wh=cell_wh)
-            auc = metrics.auc_judd(heat, fixations)
+            auc = metrics.auc_judd(heat, fixations, jitter=auc_jitter, rng=rng)
             tally.hits.append(hit)
             tally.aucs.append(auc)
             if frames_out is not None:
@@ -220,7 +226,7 @@ def run_sequence(sequence: data.Sequence, methods: list[Method], *, max_frames: 
 
 def evaluate(sequences: list[data.Sequence], methods: list[Method], *,
              max_frames: int | None = None, warmup: int = 1, quiet: bool = False,
-             keep_frames: bool = False) -> dict:
+             keep_frames: bool = False, auc_jitter: bool = False) -> dict:
     """Run every method over every sequence; a sequence whose frames turn out bad is
     dropped for all methods and listed under 'skipped'."""
     total = sum(len(s) if max_frames is None else min(len(s), max_frames) for s in sequences)
@@ -234,6 +240,7 @@ def evaluate(sequences: list[data.Sequence], methods: list[Method], *,
         try:
             tallies, chance = run_sequence(seq, methods, max_frames=max_frames,
                                            warmup=warmup, progress=progress,
+                                           auc_jitter=auc_jitter,
                                            frames_out=frames_out)
         except DataError as err:
             skipped.append((seq.name, str(err)))
@@ -362,6 +369,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--warmup', type=int, default=1, metavar='N',
                    help='frames not scored at the start of each sequence (default 1)')
     p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--auc-jitter', action='store_true',
+                   help='break AUC-Judd ties at random (MIT code default); off: ties count '
+                        'against the map, so a saturated one-hot map scores 0.5 on a miss')
     p.add_argument('--json', action='store_true', help='one JSON object per method on stdout')
     p.add_argument('--out', metavar='DIR',
                    help='write passive.json (with per-frame scores) and passive.md there')
@@ -417,13 +427,15 @@ def main(argv: list[str] | None = None) -> int:
     sequences.sort(key=lambda s: (KIND_ORDER[s.camera_kind], s.name))
     try:
         result = evaluate(sequences, methods, max_frames=args.max_frames,
-                          warmup=args.warmup, quiet=args.quiet, keep_frames=bool(args.out))
+                          warmup=args.warmup, quiet=args.quiet, keep_frames=bool(args.out),
+                          auc_jitter=args.auc_jitter)
     except ActivelocError as err:
         print(f'error: {err}', file=sys.stderr)
         return 2
     result['skipped'] = skipped + result['skipped']
     result['settings'] = {'data': str(root), 'max_frames': args.max_frames,
                           'warmup': args.warmup, 'seed': args.seed, 'grid': list(GRID),
+                          'auc_jitter': args.auc_jitter,
                           'set': args.set}
     table = markdown(result)
     if args.json:
