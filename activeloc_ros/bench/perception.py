@@ -1,0 +1,222 @@
+"""Per-frame cost of the perception model, online update included.
+
+For each encoder and each encoder-update setting, a fresh process builds a `SurpriseModel` and
+steps it through N frames of a video or of a synthetic moving scene, then reports the
+per-frame latency (p50/p95 of `step`), frames/s, peak RSS and how RSS grew from the end of
+the warm-up to the last frame (it must stay flat over long runs). Frame generation and
+decoding are outside the timings.
+
+    python -m activeloc_ros.bench perception --encoder efficientnet_lite0 --frames 2000
+"""
+import argparse
+import concurrent.futures
+import json
+import multiprocessing
+import os
+import resource
+import sys
+import time
+from typing import Any, Iterator
+
+import numpy as np
+import yaml
+
+from activeloc_ros.errors import ActivelocError, ConfigError, SourceError
+
+STAGES = ('preprocess', 'encode', 'predict', 'update')
+SHORT = {'preprocess': 'prep', 'encode': 'enc', 'predict': 'pred', 'update': 'upd'}
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    from activeloc_ros.perception.model import ENCODER_NAMES
+    p = argparse.ArgumentParser(
+        prog='python -m activeloc_ros.bench perception',
+        description='Per-frame latency, frames/s and memory of the perception model '
+                    '(encode + predict + one online update per frame).')
+    p.add_argument('--encoder', action='append', choices=ENCODER_NAMES,
+                   help='encoder to measure; repeat for several (default efficientnet_lite0)')
+    p.add_argument('--frames', type=int, default=2000, help='frames per run (default 2000)')
+    p.add_argument('--warmup', type=int, default=20,
+                   help='first frames left out of the latency and RSS-growth figures')
+    p.add_argument('--update-encoder', choices=('both', 'yes', 'no'), default='both',
+                   help='measure with the encoder trained online, frozen, or both')
+    p.add_argument('--video', help='a video file to loop over (default: a synthetic scene)')
+    p.add_argument('--size', default='640x480', help='synthetic frame size WxH')
+    p.add_argument('--threads', type=int, default=os.cpu_count() or 1,
+                   help='torch threads (default: all cores)')
+    p.add_argument('--weights', help='encoder weights file (needed for vgg16)')
+    p.add_argument('--random-weights', action='store_true',
+                   help='random encoder weights: same cost, no weight files needed')
+    p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
+                   help='any PerceptionConfig field, e.g. --set hidden=256')
+    p.add_argument('--json', action='store_true', help='print the rows as JSON')
+    args = p.parse_args(argv)
+    if args.frames <= args.warmup:
+        p.error('--frames must exceed --warmup')
+    return args
+
+
+def overrides(pairs: list[str]) -> dict[str, Any]:
+    out = {}
+    for pair in pairs:
+        key, sep, value = pair.partition('=')
+        if not sep:
+            raise ConfigError(f'--set expects KEY=VALUE, got {pair!r}')
+        out[key.strip()] = yaml.safe_load(value)
+    return out
+
+
+def synthetic(width: int, height: int, *, seed: int = 0) -> Iterator[np.ndarray]:
+    """A textured background, slow camera drift, sensor noise and three moving objects."""
+    import cv2
+    rng = np.random.default_rng(seed)
+    pad = 64
+    bg = cv2.resize((rng.random((height // 8 + 16, width // 8 + 16, 3)) * 255).astype(np.uint8),
+                    (width + 2 * pad, height + 2 * pad), interpolation=cv2.INTER_CUBIC)
+    t = 0
+    while True:
+        dx = int(pad + pad * 0.8 * np.sin(t / 90.0))
+        dy = int(pad + pad * 0.5 * np.sin(t / 130.0))
+        frame = bg[dy:dy + height, dx:dx + width].copy()
+        for k, colour in enumerate(((230, 40, 40), (40, 200, 60), (250, 250, 250))):
+            cx = int((0.5 + 0.4 * np.sin(t / (25.0 + 10 * k) + k)) * width)
+            cy = int((0.5 + 0.35 * np.cos(t / (40.0 + 7 * k) + 2 * k)) * height)
+            cv2.circle(frame, (cx, cy), 18 + 8 * k, colour, -1)
+        noise = rng.integers(-6, 7, size=frame.shape, dtype=np.int16)
+        yield np.clip(frame.astype(np.int16) + noise, 0, 255).astype(np.uint8)
+        t += 1
+
+
+def video(path: str) -> Iterator[np.ndarray]:
+    """RGB frames of a video file, looped forever."""
+    import cv2
+    cap = cv2.VideoCapture(path)
+    if not cap.isOpened():
+        raise SourceError(f'cannot open video {path}')
+    frames = 0
+    while True:
+        ok, bgr = cap.read()
+        if not ok:
+            if frames == 0:
+                raise SourceError(f'video {path} has no readable frames')
+            cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+            continue
+        frames += 1
+        yield cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def rss_mb() -> float:
+    with open('/proc/self/statm') as f:
+        pages = int(f.read().split()[1])
+    return pages * os.sysconf('SC_PAGE_SIZE') / 2**20
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: KiB
+
+
+def run(job: dict[str, Any]) -> dict[str, Any]:
+    """One configuration, in its own process so memory figures are its own."""
+    import torch
+
+    from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
+    from activeloc_ros.progress import Progress
+    torch.set_num_threads(job['threads'])
+    cfg = PerceptionConfig.from_dict(job['config'])
+    model = SurpriseModel(cfg)
+    if job['video']:
+        source = video(job['video'])
+    else:
+        source = synthetic(*job['size'])
+    n, warmup = job['frames'], job['warmup']
+    total = np.zeros(n)
+    stages = np.zeros((n, len(STAGES)))
+    rss = np.zeros(n)
+    label = f"{cfg.encoder} update_encoder={'yes' if cfg.update_encoder else 'no'}"
+    progress = Progress(n, label)
+    for i in range(n):
+        frame = next(source)
+        t0 = time.perf_counter()
+        res = model.step(frame)
+        total[i] = time.perf_counter() - t0
+        stages[i] = [res.timings[k] for k in STAGES]
+        rss[i] = rss_mb()
+        progress.update(note=f'{total[i] * 1e3:.0f} ms')
+    progress.close()
+    lat = total[warmup:]
+    half = rss[warmup:]
+    slope = np.polyfit(np.arange(len(half)), half, 1)[0] * 1000 if len(half) > 1 else 0.0
+    return {
+        'encoder': cfg.encoder, 'update_encoder': cfg.update_encoder,
+        'frames': n, 'warmup': warmup, 'threads': job['threads'],
+        'p50_ms': float(np.percentile(lat, 50) * 1e3),
+        'p95_ms': float(np.percentile(lat, 95) * 1e3),
+        'fps': float(len(lat) / lat.sum()),
+        'stage_p50_ms': {k: float(np.median(stages[warmup:, j]) * 1e3)
+                         for j, k in enumerate(STAGES)},
+        'peak_rss_mb': peak_rss_mb(),
+        'rss_after_warmup_mb': float(rss[warmup]),
+        'rss_growth_mb': float(rss[-1] - rss[warmup]),
+        'rss_slope_mb_per_1000': float(slope),
+        'nan_events': res.nan_events,
+        'config': cfg.to_dict(),
+    }
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+    head = (f'{"encoder":<19}{"upd.enc":>8}{"frames":>7}{"p50 ms":>8}{"p95 ms":>8}'
+            f'{"fps":>7}{"peakRSS MB":>11}{"RSS growth MB":>14}  p50 ms: '
+            f'{" / ".join(SHORT[s] for s in STAGES)}')
+    lines = [head, '-' * len(head)]
+    for r in rows:
+        s = r['stage_p50_ms']
+        lines.append(
+            f'{r["encoder"]:<19}{"yes" if r["update_encoder"] else "no":>8}{r["frames"]:>7}'
+            f'{r["p50_ms"]:>8.1f}{r["p95_ms"]:>8.1f}{r["fps"]:>7.1f}{r["peak_rss_mb"]:>11.0f}'
+            f'{r["rss_growth_mb"]:>+14.1f}  ' + ' / '.join(f'{s[k]:.1f}' for k in STAGES))
+    return '\n'.join(lines)
+
+
+def main(argv: list[str]) -> int:
+    args = parse_args(argv)
+    try:
+        extra = overrides(args.set)
+        size = tuple(int(v) for v in args.size.lower().split('x'))
+        if len(size) != 2 or min(size) < 1:
+            raise ConfigError(f'--size expects WxH, got {args.size!r}')
+    except (ValueError, yaml.YAMLError) as err:
+        print(f'error: {err}', file=sys.stderr)
+        return 2
+    except ConfigError as err:
+        print(f'error: {err}', file=sys.stderr)
+        return 2
+    updates = {'both': (False, True), 'yes': (True,), 'no': (False,)}[args.update_encoder]
+    jobs = []
+    for encoder in args.encoder or ['efficientnet_lite0']:
+        for update in updates:
+            config = {**extra, 'encoder': encoder, 'update_encoder': update,
+                      'num_threads': args.threads}
+            if args.random_weights:
+                config['pretrained'] = False
+            elif args.weights:
+                config['weights'] = args.weights
+            jobs.append({'config': config, 'frames': args.frames, 'warmup': args.warmup,
+                         'video': args.video, 'size': size, 'threads': args.threads})
+    rows, failed = [], 0
+    spawn = multiprocessing.get_context('spawn')
+    for job in jobs:
+        with concurrent.futures.ProcessPoolExecutor(1, mp_context=spawn) as pool:
+            try:
+                rows.append(pool.submit(run, job).result())
+            except ActivelocError as err:
+                failed += 1
+                print(f'{job["config"]["encoder"]}: {type(err).__name__}: {err}',
+                      file=sys.stderr)
+    if args.json:
+        print(json.dumps(rows, indent=1))
+    elif rows:
+        src = args.video or f'synthetic {size[0]}x{size[1]}'
+        print(f'perception bench: {src}, {args.threads} threads, latency and fps over frames '
+              f'{args.warmup}..{args.frames}, RSS growth from frame {args.warmup} to the last')
+        print(table(rows))
+    return 1 if failed else 0
