@@ -7,7 +7,6 @@ the state it echoes, surviving a silent, noisy or vanishing port. On Ctrl-C the 
 where it is, or goes home slowly (``stop_mode``), before the node ends.
 """
 import math
-import signal
 import threading
 import time
 
@@ -276,14 +275,7 @@ class ArmNode(Node):
         return done
 
 
-def _interrupt(signum, frame):
-    raise KeyboardInterrupt
-
-
 def main(args=None) -> int:
-    # Ctrl-C and kill both stop the arm on purpose (even where SIGINT came in ignored).
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    signal.signal(signal.SIGTERM, _interrupt)
     return run(ArmNode, args, on_stop=lambda node: node.stop_on_purpose())
 
 

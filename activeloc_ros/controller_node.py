@@ -6,7 +6,6 @@ of the source frame), ``camera/camera_info`` and ``joint_states``; publishes
 graph can measure frame-to-command latency). The maths is ``activeloc_ros.control``.
 """
 import math
-import signal
 import threading
 
 from geometry_msgs.msg import PointStamped
@@ -222,14 +221,7 @@ class ControllerNode(Node):
                                       throttle_duration_sec=5.0)
 
 
-def _interrupt(signum, frame):
-    raise KeyboardInterrupt
-
-
 def main(args=None) -> int:
-    # Ctrl-C and kill both stop the arm on purpose (even where SIGINT came in ignored).
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    signal.signal(signal.SIGTERM, _interrupt)
     return run(ControllerNode, args, on_stop=lambda node: node.stop_on_purpose())
 
 

@@ -3,6 +3,7 @@
 Validation is a pure function per parameter (value -> error message or None), registered
 before the parameters are declared so values from `params/*.yaml` are validated too.
 """
+import signal
 import sys
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
@@ -82,6 +83,10 @@ def declare(node, params: Sequence[Param]) -> dict[str, Any]:
     return {p.name: node.get_parameter(p.name).value for p in params}
 
 
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
 def run(node_factory: Callable[..., Any], args=None, *, on_stop: Callable[[Any], None] | None = None) -> int:
     """Init, spin and shut down one node the Jazzy way; a project error exits 1 with a message.
 
@@ -90,6 +95,11 @@ def run(node_factory: Callable[..., Any], args=None, *, on_stop: Callable[[Any],
     """
     from rclpy.signals import SignalHandlerOptions
     handler = SignalHandlerOptions.NO if on_stop else SignalHandlerOptions.ALL
+    if on_stop:
+        # Ctrl-C and kill both reach on_stop, even where SIGINT came in ignored (a process
+        # started in the background inherits SIG_IGN, and Python then leaves it so).
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, _interrupt)
     rclpy.init(args=args, signal_handler_options=handler)
     node = None
     try:
