@@ -15,21 +15,12 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
-from activeloc_ros.control import check_pose, clamp_to_limits, JOINT_NAMES, SimArm
+from activeloc_ros.control import clamp_to_limits, pose_problem, JOINT_NAMES, SimArm
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.serial_link import BraccioLink
-from activeloc_ros.errors import ConfigError
 from activeloc_ros.ros_params import declare, in_range, one_of, Param, positive, run
 
 HOME = [90, 90, 45, 45, 90, 73]
-
-
-def _pose(value) -> 'str | None':
-    try:
-        check_pose(value)
-    except ConfigError as exc:
-        return str(exc)
-    return None
 
 
 PARAMS = (
@@ -38,8 +29,8 @@ PARAMS = (
     Param('state_rate', 50.0, 'joint_states publishing rate, Hz', in_range(1.0, 500.0)),
     Param('step_delay_ms', 20, 'Servo step delay, ms per degree (sim; must match the sketch)',
           in_range(*STEP_DELAY_MS_RANGE)),
-    Param('home_deg', HOME, 'Home pose, degrees', _pose),
-    Param('sim_start_deg', HOME, 'Pose the simulated arm starts in, degrees', _pose),
+    Param('home_deg', HOME, 'Home pose, degrees', pose_problem),
+    Param('sim_start_deg', HOME, 'Pose the simulated arm starts in, degrees', pose_problem),
     Param('stop_mode', 'hold', "On shutdown: 'hold' stops where it is, 'home' goes home "
           'slowly', one_of('hold', 'home')),
     Param('home_speed_deg_s', 15.0, 'Joint speed when going home at shutdown, deg/s',

@@ -9,7 +9,6 @@ and a bare .mcap file work; writing uses `rosbags`, which writes the rosbag2 met
 """
 import argparse
 from dataclasses import dataclass, field
-import hashlib
 from pathlib import Path
 import shutil
 import subprocess
@@ -22,6 +21,7 @@ from mcap.reader import make_reader
 import numpy as np
 
 from activeloc_ros.errors import SourceError
+from activeloc_ros.paths import file_sha256
 
 IMAGE_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage')
 CAMERA_INFO_TYPE = 'sensor_msgs/msg/CameraInfo'
@@ -103,8 +103,10 @@ def bag_facts(path: Path) -> BagFacts:
                     end = stats.message_end_time if end is None else max(
                         end, stats.message_end_time)
         except READER_ERRORS as exc:
-            raise SourceError(f'cannot read bag file {file}: {type(exc).__name__}: {exc}') from exc
-    topics = [TopicFacts(name, msgtype, count) for (name, msgtype), count in sorted(counts.items())]
+            raise SourceError(
+                f'cannot read bag file {file}: {type(exc).__name__}: {exc}') from exc
+    topics = [TopicFacts(name, msgtype, count)
+              for (name, msgtype), count in sorted(counts.items())]
     return BagFacts(Path(path), files, sum(f.stat().st_size for f in files),
                     start or 0, end or 0, topics)
 
@@ -137,7 +139,8 @@ def read_messages(path: Path, topics: list[str]) -> Iterator[tuple[str, str, int
                     msg = store.deserialize_cdr(message.data, schema.name)
                     yield channel.topic, schema.name, message.log_time, msg
         except READER_ERRORS as exc:
-            raise SourceError(f'cannot read bag file {file}: {type(exc).__name__}: {exc}') from exc
+            raise SourceError(
+                f'cannot read bag file {file}: {type(exc).__name__}: {exc}') from exc
 
 
 class BagWriter:
@@ -216,7 +219,7 @@ def fetch_sample_video(workdir: Path) -> Path:
                          capture_output=True).stdout
     subprocess.run(['tar', '-x', '-C', str(workdir), SAMPLE_MEMBER], input=tar, check=True)
     video = workdir / SAMPLE_MEMBER
-    if sha256(video) != SAMPLE_SHA256:
+    if file_sha256(video) != SAMPLE_SHA256:
         raise SourceError(f'{video.name} from {deb.name} does not have the expected sha256')
     return video
 
@@ -262,14 +265,6 @@ def make_sample(video: Path, out: Path, *, frames: int, width: int, quality: int
     metadata.write_text(metadata.read_text().replace(tmp.name, out.name))
     tmp.rename(out)
     return bag_facts(out)
-
-
-def sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, 'rb') as stream:
-        for block in iter(lambda: stream.read(1 << 20), b''):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def main(argv: list[str] | None = None) -> int:

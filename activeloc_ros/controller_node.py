@@ -15,20 +15,12 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, JointState
 
 from activeloc_ros.control import (
-    ArmMapping, check_pose, ControllerConfig, Intrinsics, JOINT_NAMES, PD_VARIANTS, PDConfig,
+    ArmMapping, ControllerConfig, Intrinsics, JOINT_NAMES, PD_VARIANTS, PDConfig, pose_problem,
     ReactiveController)
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.pd import DERIVATIVE_MODES
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.ros_params import declare, in_range, non_negative, one_of, Param, positive, run
-
-
-def _pose(value) -> 'str | None':
-    try:
-        check_pose(value)
-    except ConfigError as exc:
-        return str(exc)
-    return None
 
 
 def _joint_names(value) -> 'str | None':
@@ -54,7 +46,7 @@ PARAMS = (
     Param('step_delay_ms', 20, 'Servo step delay, ms per degree (sets the speed limit)',
           in_range(*STEP_DELAY_MS_RANGE)),
     Param('home_deg', [90, 90, 45, 45, 90, 73], 'Home pose (degrees, camera straight ahead)',
-          _pose),
+          pose_problem),
     Param('pan_joint', 'base', 'Joint that pans the camera', one_of(*JOINT_NAMES)),
     Param('pan_gain', 1.0, 'Degrees of pan joint per degree of pan (negative flips)'),
     Param('tilt_joints', ['wrist_ver'], 'Joints that tilt the camera', _joint_names),

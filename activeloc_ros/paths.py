@@ -1,4 +1,5 @@
-"""Where the package's data files are: the source tree when run from it, else share/."""
+"""Where the package's data files are (the source tree when run from it, else share/)."""
+import hashlib
 from pathlib import Path
 
 SOURCE_ROOT = Path(__file__).resolve().parents[1]
@@ -14,3 +15,11 @@ def share_path(relative: str) -> Path:
         return Path(get_package_share_directory('activeloc_ros')) / relative
     except (ImportError, LookupError):
         return here
+
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, 'rb') as stream:
+        for block in iter(lambda: stream.read(1 << 20), b''):
+            digest.update(block)
+    return digest.hexdigest()

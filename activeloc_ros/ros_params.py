@@ -87,7 +87,8 @@ def _interrupt(signum, frame):
     raise KeyboardInterrupt
 
 
-def run(node_factory: Callable[..., Any], args=None, *, on_stop: Callable[[Any], None] | None = None) -> int:
+def run(node_factory: Callable[..., Any], args=None, *,
+        on_stop: Callable[[Any], None] | None = None) -> int:
     """Init, spin and shut down one node the Jazzy way; a project error exits 1 with a message.
 
     :param on_stop: called with the node after Ctrl-C and before the context ends, so

@@ -1,14 +1,12 @@
 """The node graph end to end: in one executor, under bringup, recorded, and with bad input."""
 import math
 import os
-from pathlib import Path
 import subprocess
 import sys
 import time
 
 import numpy as np
 import pytest
-import rclpy
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
@@ -46,7 +44,6 @@ class Probe:
         sub(Float32MultiArray, 'surprise_map', self.on_map, 100)
         sub(PointStamped, 'action_location', self.on_location, 100)
         sub(JointState, 'joint_commands', self.commands.append, QoSProfile(depth=100))
-
 
     def on_map(self, msg):
         self.maps.append(msg)

@@ -4,7 +4,8 @@ import sys
 
 COMMANDS = {
     'perception': ('activeloc_ros.bench.perception', 'per-frame cost of the perception model'),
-    'passive': ('activeloc_ros.bench.passive', 'does the map peak fall on the actor (fixed camera)'),
+    'passive': ('activeloc_ros.bench.passive',
+                'does the map peak fall on the actor (fixed camera)'),
 }
 
 

@@ -65,6 +65,15 @@ def clamp_to_limits(joints_deg: Sequence[float]) -> tuple[float, ...]:
     return tuple(min(max(float(q), lo), hi) for q, lo, hi in zip(joints_deg, _LO, _HI))
 
 
+def pose_problem(value: Sequence[float]) -> 'str | None':
+    """A parameter check: why `value` is not a pose inside the limits, or None."""
+    try:
+        check_pose(value)
+    except ConfigError as exc:
+        return str(exc)
+    return None
+
+
 def check_pose(joints_deg: Sequence[float], what: str = 'pose') -> tuple[float, ...]:
     """Return the pose as a tuple; raise ConfigError unless it is inside the limits."""
     pose = tuple(float(q) for q in joints_deg)

@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from activeloc_ros.errors import ActivelocError, ConfigError, WeightsError
+from activeloc_ros.paths import file_sha256
 from activeloc_ros.perception import encoders
 
 CACHE_ENV = 'ACTIVELOC_CACHE'
@@ -140,14 +141,6 @@ def state_digest(state: dict[str, torch.Tensor]) -> str:
         t = state[key].detach().cpu().contiguous()
         h.update(f'{key}|{t.dtype}|{tuple(t.shape)}|'.encode())
         h.update(t.numpy().tobytes())
-    return h.hexdigest()
-
-
-def file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, 'rb') as f:
-        for chunk in iter(lambda: f.read(1 << 20), b''):
-            h.update(chunk)
     return h.hexdigest()
 
 
