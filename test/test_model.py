@@ -329,3 +329,27 @@ def test_nan_gradients_skip_the_update(monkeypatch):
     res = model.step(frames[2])
     assert res.nan_events == 1 and not res.updated
     assert same(before, weights(model))
+
+
+# -- the map's formula -----------------------------------------------------------------------
+@pytest.mark.parametrize('motion', ['abs_sigmoid', 'sigmoid', 'raw', 'none'])
+def test_an_untrained_residual_predictor_gives_the_motion_weighted_difference_map(motion):
+    # residual with a zero head predicts fhat_t = f_{t-1}: e = mean_c w(d) d^2, d = f_t - f_{t-1}
+    model = make(residual=True, learn=False, motion=motion, map_temperature=0.5)
+    a, b = clip(2)
+    model.step(a)
+    got = model.step(b).surprise_map
+    with torch.no_grad():
+        fa, fb = (model._to_cells(model.encoder(model.preprocess(x)))[0] for x in (a, b))
+    d = fb - fa
+    e = (M.motion_weight(d, motion, 1.0) * d.square()).mean(1)
+    want = torch.softmax(e / 0.5, 0).reshape(model.grid, model.grid).numpy()
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)
+
+
+def test_frame_rms_normalises_every_frame():
+    model = make(feature_norm='frame_rms')
+    with torch.no_grad():
+        x = torch.cat([model.preprocess(f) for f in clip(2)])
+        f = model._to_cells(model.encoder(x) * torch.tensor([3.0, 0.1]).view(2, 1, 1, 1))
+    np.testing.assert_allclose(f.square().mean(dim=(1, 2)).sqrt().numpy(), 1.0, rtol=1e-4)

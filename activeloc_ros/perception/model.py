@@ -92,6 +92,10 @@ class PerceptionConfig:
         True, 'load ImageNet weights; False = random encoder, for unit tests only')
     blur_ksize: int = _param(
         0, 'Gaussian blur of the 224x224 frame before encoding; 0 = off, 5 = lab code', _blur)
+    feature_norm: str = _param(
+        'none', 'scale of the features the predictor and the losses see: none (raw encoder '
+        'units, paper) or frame_rms (each frame divided by its RMS over cells and channels, '
+        'so targets are O(1) whatever the encoder)', _choice('none', 'frame_rms'))
     # predictor
     hidden: int = _param(512, 'units of each LSTM (paper 512)', _at_least(1))
     layers: int = _param(3, 'stacked LSTMs (paper 3)', _at_least(1))
@@ -99,6 +103,10 @@ class PerceptionConfig:
     attn_rescale: bool = _param(
         False, 'feed N * alpha * f to the LSTM (N cells), so uniform attention passes the '
         'features unchanged; False = alpha * f as the lab code (inputs ~f/196)')
+    residual: bool = _param(
+        False, 'predict the change: fhat = f_t + head(h) with the head starting at zero, '
+        'i.e. a copy-last-frame predictor that learns corrections; False = the top LSTM '
+        'predicts the feature itself (paper)')
     head: str = _param(
         'linear', 'top LSTM -> predicted feature: linear (to C channels, unbounded) or none '
         '(the LSTM output itself, lab code; needs hidden == C)', _choice('linear', 'none'))
@@ -250,6 +258,10 @@ class Predictor(nn.Module):
         sizes = [channels] + [cfg.hidden] * (cfg.layers - 1)
         self.cells = nn.ModuleList(nn.Linear(n + cfg.hidden, 4 * cfg.hidden) for n in sizes)
         self.head = nn.Linear(cfg.hidden, channels) if cfg.head == 'linear' else nn.Identity()
+        self.residual = cfg.residual
+        if cfg.residual and cfg.head == 'linear':
+            nn.init.zeros_(self.head.weight)
+            nn.init.zeros_(self.head.bias)
 
     def initial_state(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
         zeros = torch.zeros(self.layers, n, self.hidden)
@@ -278,6 +290,8 @@ class Predictor(nn.Module):
             hs.append(x)
             cs.append(c)
         fhat = self.head(x)                                     # (N, C)
+        if self.residual:
+            fhat = fhat + f
         return fhat, alpha, (torch.stack(hs), torch.stack(cs))
 
 
@@ -429,9 +443,11 @@ class SurpriseModel:
             x = x.contiguous(memory_format=torch.channels_last)
         return x
 
-    @staticmethod
-    def _to_cells(f: torch.Tensor) -> torch.Tensor:
-        return f.flatten(2).transpose(1, 2)                     # (B, C, g, g) -> (B, N, C)
+    def _to_cells(self, f: torch.Tensor) -> torch.Tensor:
+        f = f.flatten(2).transpose(1, 2)                        # (B, C, g, g) -> (B, N, C)
+        if self.cfg.feature_norm == 'frame_rms':
+            f = f / (f.square().mean(dim=(1, 2), keepdim=True).sqrt() + 1e-6)
+        return f
 
     def _encode(self, x: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor]:
         """Features (N, C) of the previous and the current frame, with grad where needed."""
