@@ -200,7 +200,8 @@ def test_predlearn_has_no_attention_loss():
 
 
 def test_adaptive_rule_boosts_the_rate_after_a_surprise():
-    model = make(adaptive_window=3, adaptive_ratio=1.5, adaptive_boost=100.0, lr=1e-5)
+    model = make(adaptive_lr=True, adaptive_window=3, adaptive_ratio=1.5, adaptive_boost=100.0,
+                 lr=1e-5)
     still = clip(1)[0]
     rates = [model.step(still).lr for _ in range(5)]
     assert rates[1:] == [1e-5] * 4

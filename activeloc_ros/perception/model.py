@@ -93,15 +93,16 @@ class PerceptionConfig:
     blur_ksize: int = _param(
         0, 'Gaussian blur of the 224x224 frame before encoding; 0 = off, 5 = lab code', _blur)
     feature_norm: str = _param(
-        'none', 'scale of the features the predictor and the losses see: none (raw encoder '
-        'units, paper) or frame_rms (each frame divided by its RMS over cells and channels, '
-        'so targets are O(1) whatever the encoder)', _choice('none', 'frame_rms'))
+        'frame_rms', 'scale of the features the predictor and the losses see: frame_rms '
+        '(each frame divided by its RMS over cells and channels, so targets are O(1) whatever '
+        'the encoder; without it the predictor does not learn online) or none (raw encoder '
+        'units, paper)', _choice('none', 'frame_rms'))
     # predictor
     hidden: int = _param(512, 'units of each LSTM (paper 512)', _at_least(1))
     layers: int = _param(3, 'stacked LSTMs (paper 3)', _at_least(1))
     attn_units: int = _param(512, 'width of the Bahdanau attention score', _at_least(1))
     attn_rescale: bool = _param(
-        False, 'feed N * alpha * f to the LSTM (N cells), so uniform attention passes the '
+        True, 'feed N * alpha * f to the LSTM (N cells), so uniform attention passes the '
         'features unchanged; False = alpha * f as the lab code (inputs ~f/196)')
     residual: bool = _param(
         False, 'predict the change: fhat = f_t + head(h) with the head starting at zero, '
@@ -138,15 +139,18 @@ class PerceptionConfig:
         'predictor\'s input and the target (exact; re-encodes the previous frame) or through '
         'the target only (half the encoder cost)', _choice('both', 'target'))
     optimizer: str = _param('adam', 'online optimiser', _choice('adam', 'sgd'))
-    lr: float = _param(1e-4, 'base learning rate (paper 1e-6)', _at_least(0.0))
+    lr: float = _param(
+        1e-3, 'base learning rate (paper 1e-6, which moves nothing within thousands of '
+        'frames here)', _at_least(0.0))
     encoder_lr_scale: float = _param(
         1.0, 'encoder learning rate = lr * this (paper: 1)', _at_least(0.0))
     momentum: float = _param(0.0, 'SGD momentum', _at_least(0.0))
     grad_clip: float = _param(
         0.0, 'clip the global gradient norm to this; 0 = off', _at_least(0.0))
     adaptive_lr: bool = _param(
-        True, 'adaptive learning (Aakur & Sarkar CVPR\'19): a loss much above the recent '
-        'mean gets a boosted learning rate for that step')
+        False, 'adaptive learning (Aakur & Sarkar CVPR\'19, paper: on): a loss much above '
+        'the recent mean gets a boosted learning rate for that step; off by default: with '
+        'Adam the 100x steps undo what was learnt')
     adaptive_window: int = _param(30, 'losses in the running mean', _at_least(1))
     adaptive_ratio: float = _param(
         1.5, 'boost when loss / mean of the window exceeds this', _above(0.0))
