@@ -179,8 +179,9 @@ def test_bringup_processes_echo_and_record(tmp_path, graph_env):
                 '/joint_commands', '/joint_states'} <= set(topics)
         maps = [reader.deserialize(raw, conn.msgtype) for conn, _, raw in
                 reader.messages(connections=[topics['/surprise_map']])]
-    assert len(maps) >= 3
-    assert [d.size for d in maps[0].layout.dim] == [14, 14] and len(maps[0].data) == 196
+    assert maps, 'no surprise map was recorded'
+    for msg in maps:
+        assert [d.size for d in msg.layout.dim] == [14, 14] and len(msg.data) == 196
     info = subprocess.run([sys.executable, '-m', 'activeloc_ros.bag', 'info', str(record)],
                           capture_output=True, text=True, cwd=REPO, env=graph_env, timeout=60)
     assert 'Topic: /surprise_map | Type: std_msgs/msg/Float32MultiArray' in info.stdout
