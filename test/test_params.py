@@ -27,3 +27,13 @@ def test_params_file_matches_declared_parameters(context, name):
             assert node.get_parameter(key).value == content['/**']['ros__parameters'][key]
     finally:
         node.destroy_node()
+
+
+def test_perception_yaml_repeats_the_model_defaults():
+    """The YAML overrides the dataclass, so a stale value would silently change the model."""
+    import dataclasses
+    from activeloc_ros.perception.model import PerceptionConfig
+    values = yaml.safe_load((PARAMS / 'perception.yaml').read_text())['/**']['ros__parameters']
+    for field in dataclasses.fields(PerceptionConfig):
+        assert field.name in values, f'perception.yaml lacks {field.name}'
+        assert values[field.name] == field.default, f'perception.yaml: stale {field.name}'
