@@ -149,11 +149,11 @@ def test_bad_frames_raise_frame_error(frame):
 
 
 # -- learning --------------------------------------------------------------------------------
-@pytest.mark.parametrize('update_encoder, encoder_grad', [
-    (False, 'both'), (True, 'both'), (True, 'target')])
+@pytest.mark.parametrize('update_encoder, encoder_grad, real', [
+    (False, 'both', False), (True, 'both', True), (True, 'target', False)])
 def test_gradients_reach_the_predictor_and_the_encoder_only_when_asked(update_encoder,
-                                                                       encoder_grad):
-    model = make(real=True, update_encoder=update_encoder, encoder_grad=encoder_grad)
+                                                                       encoder_grad, real):
+    model = make(real=real, update_encoder=update_encoder, encoder_grad=encoder_grad)
     before = weights(model)
     for frame in clip(3):
         res = model.step(frame)

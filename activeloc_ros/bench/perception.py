@@ -2,8 +2,9 @@
 
 For each encoder and each encoder-update setting, a fresh process builds a `SurpriseModel` and
 steps it through N frames of a video or of a synthetic moving scene, then reports the
-per-frame latency (p50/p95 of `step`), frames/s, peak RSS and how RSS grew from the end of
-the warm-up to the last frame (it must stay flat over long runs). Frame generation and
+per-frame latency (p50/p95 of `step`), frames/s, peak RSS and how RSS grew from the steady
+state (after warm-up, the first weight snapshot and a tenth of the run) to the last frame: it
+must stay flat over long runs. Frame generation and
 decoding are outside the timings.
 
     python -m activeloc_ros.bench perception --encoder efficientnet_lite0 --frames 2000
@@ -144,8 +145,11 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
         progress.update(note=f'{total[i] * 1e3:.0f} ms')
     progress.close()
     lat = total[warmup:]
-    half = rss[warmup:]
-    slope = np.polyfit(np.arange(len(half)), half, 1)[0] * 1000 if len(half) > 1 else 0.0
+    # steady state: after the warm-up, the optimiser's lazily made state and the first weight
+    # snapshot (`snapshot_every` updates), and a tenth of the run for the allocator to settle
+    base = min(n - 1, max(warmup + cfg.snapshot_every + 1, n // 10))
+    tail = rss[base:]
+    slope = np.polyfit(np.arange(len(tail)), tail, 1)[0] * 1000 if len(tail) > 1 else 0.0
     return {
         'encoder': cfg.encoder, 'update_encoder': cfg.update_encoder,
         'frames': n, 'warmup': warmup, 'threads': job['threads'],
@@ -155,8 +159,9 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
         'stage_p50_ms': {k: float(np.median(stages[warmup:, j]) * 1e3)
                          for j, k in enumerate(STAGES)},
         'peak_rss_mb': peak_rss_mb(),
-        'rss_after_warmup_mb': float(rss[warmup]),
-        'rss_growth_mb': float(rss[-1] - rss[warmup]),
+        'rss_base_frame': int(base),
+        'rss_base_mb': float(rss[base]),
+        'rss_growth_mb': float(rss[-1] - rss[base]),
         'rss_slope_mb_per_1000': float(slope),
         'nan_events': res.nan_events,
         'config': cfg.to_dict(),
@@ -216,7 +221,8 @@ def main(argv: list[str]) -> int:
         print(json.dumps(rows, indent=1))
     elif rows:
         src = args.video or f'synthetic {size[0]}x{size[1]}'
-        print(f'perception bench: {src}, {args.threads} threads, latency and fps over frames '
-              f'{args.warmup}..{args.frames}, RSS growth from frame {args.warmup} to the last')
+        print(f'perception bench: {src}, {args.threads} threads; latency and fps over frames '
+              f'{args.warmup}..{args.frames}; RSS growth from frame {rows[0]["rss_base_frame"]} '
+              f'(steady state) to the last')
         print(table(rows))
     return 1 if failed else 0

@@ -18,7 +18,8 @@ Which computation happens when (one frame per `step`, t the new frame):
     same batch as the new one, so the gradient flows through both the predictor's input
     and the target, as in the paper's end-to-end loss.
 
-Losses (`loss_reduction='mean'`, the default; N cells, C channels):
+Losses (`loss_reduction='mean'`, the default; N cells, C channels; f are the encoder's
+features, each frame divided by its RMS under the default `feature_norm='frame_rms'`):
     w        = motion weight of (f_t - f_{t-1}), detached (a weight, not a target)
     E        = w * (f_t - fhat_t)^2                                  # (N, C)
     L_global = mean over N*C of E            ('sum': sum over N*C)
@@ -28,6 +29,9 @@ Losses (`loss_reduction='mean'`, the default; N cells, C channels):
                surprise map of the frame before; L2 norms over all cells and channels,
                the same under both reductions)
     total    = L_global + attn_weight * L_attn
+Defaults that differ from the paper, each measured (see the field helps): feature_norm,
+attn_rescale, Adam at 1e-3 instead of 1e-6, adaptive boost off, encoder frozen, and the
+motion weight 2*sigmoid(|d|)-1 (the literal sigmoid(d) is 0.5 where nothing moves).
 """
 import collections
 import dataclasses
@@ -41,7 +45,6 @@ import cv2
 import numpy as np
 import torch
 from torch import nn
-from torch.nn import functional as F
 
 from activeloc_ros.errors import ConfigError, FrameError
 
