@@ -183,16 +183,14 @@ def table(rows: list[dict[str, Any]]) -> str:
 
 
 def main(argv: list[str]) -> int:
+    from activeloc_ros.perception.model import PerceptionConfig
     args = parse_args(argv)
     try:
         extra = overrides(args.set)
         size = tuple(int(v) for v in args.size.lower().split('x'))
         if len(size) != 2 or min(size) < 1:
             raise ConfigError(f'--size expects WxH, got {args.size!r}')
-    except (ValueError, yaml.YAMLError) as err:
-        print(f'error: {err}', file=sys.stderr)
-        return 2
-    except ConfigError as err:
+    except (ValueError, yaml.YAMLError, ConfigError) as err:
         print(f'error: {err}', file=sys.stderr)
         return 2
     updates = {'both': (False, True), 'yes': (True,), 'no': (False,)}[args.update_encoder]
@@ -205,6 +203,11 @@ def main(argv: list[str]) -> int:
                 config['pretrained'] = False
             elif args.weights:
                 config['weights'] = args.weights
+            try:
+                PerceptionConfig.from_dict(config)      # a bad --set fails here, once
+            except ConfigError as err:
+                print(f'error: {err}', file=sys.stderr)
+                return 2
             jobs.append({'config': config, 'frames': args.frames, 'warmup': args.warmup,
                          'video': args.video, 'size': size, 'threads': args.threads})
     rows, failed = [], 0
