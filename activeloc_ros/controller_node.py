@@ -34,8 +34,9 @@ PARAMS = (
           one_of('', *PD_VARIANTS)),
     Param('kp', 1.0, 'lambda_p of Eq. 4', non_negative),
     Param('kd', 0.1, 'lambda_d of Eq. 4, seconds', non_negative),
-    Param('derivative', 'error', "'error': d/dt of the camera-frame error (the paper); "
-          "'target': d/dt of the action's direction", one_of(*DERIVATIVE_MODES)),
+    Param('derivative', 'target', "'target': d/dt of the action's direction (default: stable "
+          "at 10 frames/s); 'error': d/dt of the camera-frame error, as printed in the paper",
+          one_of(*DERIVATIVE_MODES)),
     Param('derivative_tau', 0.0, 'Low-pass time constant on the derivative, s (0: off)',
           non_negative),
     Param('dead_band_deg', 2.0, 'Errors below this (per axis, degrees) are ignored',

@@ -140,7 +140,11 @@ def test_pd_variant_overrides_the_gains(context):
 
 def test_closed_loop_with_the_sim_arm_centres_a_still_action(context):
     """Controller + simulated arm + a virtual camera looking at an action 15 deg left and
-    8 deg up: the arm turns until the action is centred (within the dead band)."""
+    8 deg up: the arm turns until the action is centred (within the dead band).
+
+    Each view is stamped with the time of the joint state it was rendered from; stamped
+    later, the controller pairs it with a newer pose and the loop can settle into a
+    two-step oscillation."""
     from activeloc_ros.arm_node import ArmNode
     from activeloc_ros.controller_node import ControllerNode
     controller = ControllerNode(context=context, cli_args=params_args('controller'))
@@ -150,6 +154,7 @@ def test_closed_loop_with_the_sim_arm_centres_a_still_action(context):
 
     def on_state(msg):
         pose['joints'] = degrees(msg)
+        pose['stamp'] = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
 
     probe.node.create_subscription(JointState, 'joint_states', on_state, 10)
     action_pan, action_tilt = math.radians(15.0), math.radians(8.0)
@@ -160,7 +165,8 @@ def test_closed_loop_with_the_sim_arm_centres_a_still_action(context):
         pan, tilt = controller.config.mapping.pan_tilt(pose['joints'])
         u = CX - FX * math.tan(action_pan - pan)
         v = CY - FX * math.tan(action_tilt - tilt) / math.cos(action_pan - pan)
-        probe.send_location(u, v, probe.now())
+        # the view was rendered from the pose of that joint state: that is its capture time
+        probe.send_location(u, v, pose['stamp'])
 
     probe.node.create_timer(0.1, frame)
     probe.node.create_timer(1.0, lambda: probe.info.publish(camera_info()))
@@ -175,7 +181,7 @@ def test_closed_loop_with_the_sim_arm_centres_a_still_action(context):
             return (abs(math.degrees(pan - action_pan)) < 2.5
                     and abs(math.degrees(tilt - action_tilt)) < 2.5)
 
-        assert spin_until(executor, centred, 15.0), pose
+        assert spin_until(executor, centred, 15.0), (pose, [degrees(c) for c in probe.commands])
         assert all(within_limits(degrees(c), tol=1e-6) for c in probe.commands)
     finally:
         executor.shutdown()

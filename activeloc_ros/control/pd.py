@@ -32,9 +32,13 @@ class PDConfig:
     :param dead_band: while both error components are smaller than this (radians) the
         camera is on target: no new motion (see ``within_dead_band``). It gates the output
         instead of zeroing the error, so the derivative never sees a jump at its edge.
-    :param derivative: ``'error'`` differentiates the camera-frame error as printed in the
-        paper (the camera's own motion then damps it); ``'target'`` differentiates the
-        action's direction (camera pose + error), a feed-forward of the action's motion.
+    :param derivative: ``'target'`` (default) differentiates the action's direction (camera
+        pose + error), a feed-forward of the action's motion; ``'error'`` differentiates the
+        camera-frame error as printed in the paper. The error also changes by the camera's
+        own motion, so with the command set from the pose at capture time each step is
+        c' = c + (kp + kd/dt) e - (kd/dt) e_prev: at 10 frames/s (kd/dt = 1) the roots of
+        z^2 + z - 1 include -1.62 and the loop falls into a two-step cycle bounded by the
+        servo speed (seen in test_control_node's closed loop).
     :param derivative_tau: time constant (s) of a first-order low-pass on the derivative; 0
         turns it off.
     """
@@ -42,7 +46,7 @@ class PDConfig:
     kp: float = 1.0
     kd: float = 0.1
     dead_band: float = math.radians(2.0)
-    derivative: str = 'error'
+    derivative: str = 'target'
     derivative_tau: float = 0.0
 
     def __post_init__(self):
