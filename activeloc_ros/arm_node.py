@@ -15,10 +15,11 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
+from activeloc_ros.checks import in_range, one_of, positive
 from activeloc_ros.control import clamp_to_limits, pose_problem, JOINT_NAMES, SimArm
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.serial_link import BraccioLink
-from activeloc_ros.ros_params import declare, in_range, one_of, Param, positive, run
+from activeloc_ros.ros_params import declare, Param, run
 
 HOME = [90, 90, 45, 45, 90, 73]
 

@@ -9,9 +9,10 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 
+from activeloc_ros.checks import non_negative, one_of, positive
 from activeloc_ros.errors import SourceError
 from activeloc_ros.images import rgb_to_image_fields
-from activeloc_ros.ros_params import Param, declare, non_negative, one_of, positive, run
+from activeloc_ros.ros_params import declare, Param, run
 from activeloc_ros.sources import default_bag, open_source, Pacer, pinhole_matrix
 
 PARAMS = [

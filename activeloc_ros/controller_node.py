@@ -14,13 +14,14 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, JointState
 
+from activeloc_ros.checks import in_range, non_negative, one_of, positive
 from activeloc_ros.control import (
     ArmMapping, ControllerConfig, Intrinsics, JOINT_NAMES, PD_VARIANTS, PDConfig, pose_problem,
     ReactiveController)
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.pd import DERIVATIVE_MODES
 from activeloc_ros.errors import ConfigError
-from activeloc_ros.ros_params import declare, in_range, non_negative, one_of, Param, positive, run
+from activeloc_ros.ros_params import declare, Param, run
 
 
 def _joint_names(value) -> 'str | None':

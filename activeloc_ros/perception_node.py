@@ -16,10 +16,11 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray, MultiArrayDimension
 
+from activeloc_ros.checks import in_range
 from activeloc_ros.errors import FrameError
 from activeloc_ros.images import image_to_rgb, overlay, rgb_to_image_fields
 from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
-from activeloc_ros.ros_params import declare, in_range, Param, run
+from activeloc_ros.ros_params import declare, Param, run
 
 NODE_PARAMS = [
     Param('publish_overlay', True, 'publish surprise_map/overlay (costs a few ms per frame)'),

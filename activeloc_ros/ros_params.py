@@ -13,9 +13,8 @@ import rclpy
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException
 
+from activeloc_ros.checks import Check
 from activeloc_ros.errors import ActivelocError, ConfigError
-
-Check = Callable[[Any], 'str | None']
 
 
 @dataclass(frozen=True)
@@ -25,26 +24,6 @@ class Param:
     description: str
     check: Check | None = None
     read_only: bool = False
-
-
-def in_range(lo: float, hi: float) -> Check:
-    def check(value):
-        return None if lo <= value <= hi else f'must be in [{lo}, {hi}], got {value}'
-    return check
-
-
-def positive(value) -> 'str | None':
-    return None if value > 0 else f'must be > 0, got {value}'
-
-
-def non_negative(value) -> 'str | None':
-    return None if value >= 0 else f'must be >= 0, got {value}'
-
-
-def one_of(*choices: str) -> Check:
-    def check(value):
-        return None if value in choices else f'must be one of {list(choices)}, got {value!r}'
-    return check
 
 
 def validate(params: Sequence[Param], values: dict[str, Any]) -> list[str]:

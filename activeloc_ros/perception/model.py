@@ -39,36 +39,18 @@ from dataclasses import dataclass, field
 import math
 import random
 import time
-from typing import Any, Callable
+from typing import Any
 
 import cv2
 import numpy as np
 import torch
 from torch import nn
 
+from activeloc_ros.checks import above, at_least, Check, one_of
 from activeloc_ros.errors import ConfigError, FrameError
 
 ENCODER_NAMES = ('vgg16', 'vgg19', 'efficientnet_lite0', 'resnet50')
 MOTIONS = ('abs_sigmoid', 'sigmoid', 'raw', 'none')
-Check = Callable[[Any], 'str | None']
-
-
-def _choice(*choices: str) -> Check:
-    def check(value):
-        return None if value in choices else f'must be one of {list(choices)}, got {value!r}'
-    return check
-
-
-def _at_least(lo: float) -> Check:
-    def check(value):
-        return None if value >= lo else f'must be >= {lo}, got {value}'
-    return check
-
-
-def _above(lo: float) -> Check:
-    def check(value):
-        return None if value > lo else f'must be > {lo}, got {value}'
-    return check
 
 
 def _blur(value: int) -> 'str | None':
@@ -89,7 +71,7 @@ class PerceptionConfig:
         'efficientnet_lite0',
         'CNN encoder to the 14x14 grid. Default efficientnet_lite0: ImageNet weights on the '
         'registries, ~30x cheaper than vgg16 so the whole online step fits 10 frames/s on '
-        '2 CPU cores; vgg16 (pool4) is the paper\'s and needs `weights`', _choice(*ENCODER_NAMES))
+        '2 CPU cores; vgg16 (pool4) is the paper\'s and needs `weights`', one_of(*ENCODER_NAMES))
     weights: str = _param('', 'encoder weights file; empty = the package weight cache')
     pretrained: bool = _param(
         True, 'load ImageNet weights; False = random encoder, for unit tests only')
@@ -99,11 +81,11 @@ class PerceptionConfig:
         'frame_rms', 'scale of the features the predictor and the losses see: frame_rms '
         '(each frame divided by its RMS over cells and channels, so targets are O(1) whatever '
         'the encoder; without it the predictor does not learn online) or none (raw encoder '
-        'units, paper)', _choice('none', 'frame_rms'))
+        'units, paper)', one_of('none', 'frame_rms'))
     # predictor
-    hidden: int = _param(512, 'units of each LSTM (paper 512)', _at_least(1))
-    layers: int = _param(3, 'stacked LSTMs (paper 3)', _at_least(1))
-    attn_units: int = _param(512, 'width of the Bahdanau attention score', _at_least(1))
+    hidden: int = _param(512, 'units of each LSTM (paper 512)', at_least(1))
+    layers: int = _param(3, 'stacked LSTMs (paper 3)', at_least(1))
+    attn_units: int = _param(512, 'width of the Bahdanau attention score', at_least(1))
     attn_rescale: bool = _param(
         True, 'feed N * alpha * f to the LSTM (N cells), so uniform attention passes the '
         'features unchanged; False = alpha * f as the lab code (inputs ~f/196)')
@@ -113,25 +95,25 @@ class PerceptionConfig:
         'predicts the feature itself (paper)')
     head: str = _param(
         'linear', 'top LSTM -> predicted feature: linear (to C channels, unbounded) or none '
-        '(the LSTM output itself, lab code; needs hidden == C)', _choice('linear', 'none'))
+        '(the LSTM output itself, lab code; needs hidden == C)', one_of('linear', 'none'))
     # losses
     mode: str = _param(
         'full', 'full = this paper; predlearn = the ECCV\'20 PredLearn baseline of Table 3 '
-        '(motion=raw and no L_attn, whatever those fields say)', _choice('full', 'predlearn'))
+        '(motion=raw and no L_attn, whatever those fields say)', one_of('full', 'predlearn'))
     motion: str = _param(
         'abs_sigmoid', 'weight of the prediction error by the motion d = f_t - f_{t-1}: '
         'abs_sigmoid = 2*sigmoid(|d|/s)-1 (0 where nothing moves, -> 1 with motion); '
         'sigmoid = sigmoid(d/s), the paper\'s literal Eq. 2 (0.5 where nothing moves, '
         'below 0.5 where a feature drops); raw = d^2 (lab code, Table 3 "w/o normalized '
-        'motion"); none = unweighted', _choice(*MOTIONS))
+        'motion"); none = unweighted', one_of(*MOTIONS))
     motion_scale: float = _param(
-        1.0, 'motion scale s of the sigmoid weightings (paper: 1)', _above(0.0))
+        1.0, 'motion scale s of the sigmoid weightings (paper: 1)', above(0.0))
     use_attn_loss: bool = _param(True, 'add L_attn (paper Eq. 3); False = Table 3 "w/o L_attn"')
-    attn_weight: float = _param(1.0, 'factor of L_attn in the total loss', _at_least(0.0))
+    attn_weight: float = _param(1.0, 'factor of L_attn in the total loss', at_least(0.0))
     map_temperature: float = _param(
-        1.0, 'softmax temperature of the surprise map over the cells (paper: 1)', _above(0.0))
+        1.0, 'softmax temperature of the surprise map over the cells (paper: 1)', above(0.0))
     loss_reduction: str = _param(
-        'mean', 'L_global over cells and channels: mean or sum', _choice('mean', 'sum'))
+        'mean', 'L_global over cells and channels: mean or sum', one_of('mean', 'sum'))
     # online learning
     learn: bool = _param(True, 'one optimiser step per frame; False = predict only')
     update_encoder: bool = _param(
@@ -140,31 +122,31 @@ class PerceptionConfig:
     encoder_grad: str = _param(
         'both', 'with update_encoder, the encoder gradient flows through both the '
         'predictor\'s input and the target (exact; re-encodes the previous frame) or through '
-        'the target only (half the encoder cost)', _choice('both', 'target'))
-    optimizer: str = _param('adam', 'online optimiser', _choice('adam', 'sgd'))
+        'the target only (half the encoder cost)', one_of('both', 'target'))
+    optimizer: str = _param('adam', 'online optimiser', one_of('adam', 'sgd'))
     lr: float = _param(
         1e-3, 'base learning rate (paper 1e-6, which moves nothing within thousands of '
-        'frames here)', _at_least(0.0))
+        'frames here)', at_least(0.0))
     encoder_lr_scale: float = _param(
-        1.0, 'encoder learning rate = lr * this (paper: 1)', _at_least(0.0))
-    momentum: float = _param(0.0, 'SGD momentum', _at_least(0.0))
+        1.0, 'encoder learning rate = lr * this (paper: 1)', at_least(0.0))
+    momentum: float = _param(0.0, 'SGD momentum', at_least(0.0))
     grad_clip: float = _param(
-        0.0, 'clip the global gradient norm to this; 0 = off', _at_least(0.0))
+        0.0, 'clip the global gradient norm to this; 0 = off', at_least(0.0))
     adaptive_lr: bool = _param(
         False, 'adaptive learning (Aakur & Sarkar CVPR\'19, paper: on): a loss much above '
         'the recent mean gets a boosted learning rate for that step; off by default: with '
         'Adam the 100x steps undo what was learnt')
-    adaptive_window: int = _param(30, 'losses in the running mean', _at_least(1))
+    adaptive_window: int = _param(30, 'losses in the running mean', at_least(1))
     adaptive_ratio: float = _param(
-        1.5, 'boost when loss / mean of the window exceeds this', _above(0.0))
-    adaptive_boost: float = _param(100.0, 'learning-rate factor of a boosted step', _above(0.0))
+        1.5, 'boost when loss / mean of the window exceeds this', above(0.0))
+    adaptive_boost: float = _param(100.0, 'learning-rate factor of a boosted step', above(0.0))
     snapshot_every: int = _param(
         25, 'copy the weights and optimiser state every N finite updates; non-finite '
-        'weights are restored from the copy', _at_least(1))
+        'weights are restored from the copy', at_least(1))
     # runtime
-    seed: int = _param(0, 'seed of random, numpy and torch', _at_least(0))
+    seed: int = _param(0, 'seed of random, numpy and torch', at_least(0))
     num_threads: int = _param(0, 'torch CPU threads (process-wide); 0 = leave as is',
-                              _at_least(0))
+                              at_least(0))
     channels_last: bool = _param(True, 'channels-last memory format for the encoder')
     fold_bn: bool = _param(
         True, 'run a frozen encoder with BatchNorm folded into its convs (same features, '
