@@ -1,6 +1,7 @@
 """Shared fixtures: a per-test rclpy Context, an isolated DDS domain, the data root."""
 import os
 from pathlib import Path
+import time
 
 import pytest
 
@@ -19,6 +20,14 @@ def context():
     rclpy.init(context=ctx)
     yield ctx
     rclpy.try_shutdown(context=ctx)
+
+
+def spin_until(executor, condition, timeout):
+    """Spin `executor` until `condition()` holds or `timeout` seconds pass; return it."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and not condition():
+        executor.spin_once(timeout_sec=0.02)
+    return condition()
 
 
 def params_args(node: str, *extra: str) -> list[str]:

@@ -13,14 +13,7 @@ from sensor_msgs.msg import JointState
 from activeloc_ros.control import HOME_DEG, JOINT_NAMES, SAFETY_DEG, within_limits
 from activeloc_ros.control.emulator import ArduinoEmulator
 from activeloc_ros.errors import ConfigError
-from conftest import params_args
-
-
-def spin_until(executor, condition, timeout):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and not condition():
-        executor.spin_once(timeout_sec=0.02)
-    return condition()
+from conftest import params_args, spin_until
 
 
 def command(joints_deg, names=JOINT_NAMES) -> JointState:

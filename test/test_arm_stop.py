@@ -14,14 +14,7 @@ from sensor_msgs.msg import JointState
 
 from activeloc_ros.control import HOME_DEG, JOINT_NAMES
 from activeloc_ros.control.emulator import ArduinoEmulator
-from conftest import params_args, REPO
-
-
-def spin_until(executor, condition, timeout):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and not condition():
-        executor.spin_once(timeout_sec=0.02)
-    return condition()
+from conftest import params_args, REPO, spin_until
 
 
 def command(joints_deg) -> JointState:

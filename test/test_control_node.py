@@ -1,6 +1,5 @@
 """The controller node in one process: topics, stamps, bad input, watchdog, closed loop."""
 import math
-import time
 
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PointStamped
@@ -12,16 +11,9 @@ from sensor_msgs.msg import CameraInfo, JointState
 
 from activeloc_ros.control import HOME_DEG, JOINT_NAMES, within_limits
 from activeloc_ros.errors import ConfigError
-from conftest import params_args
+from conftest import params_args, spin_until
 
 FX, CX, CY = 600.0, 319.5, 239.5
-
-
-def spin_until(executor, condition, timeout):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and not condition():
-        executor.spin_once(timeout_sec=0.02)
-    return condition()
 
 
 def camera_info() -> CameraInfo:

@@ -11,26 +11,11 @@ from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
-from activeloc_ros.control.braccio import JOINT_NAMES, LIMITS_DEG
+from activeloc_ros.control.braccio import JOINT_NAMES, within_limits
 from activeloc_ros.errors import ConfigError
-from conftest import params_args, REPO
+from conftest import params_args, REPO, spin_until
 
 SAMPLE = REPO / 'bags' / 'vtest'
-
-
-def spin_until(executor, condition, timeout):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and not condition():
-        executor.spin_once(timeout_sec=0.05)
-    return condition()
-
-
-def within_limits(msg, tol_deg=1e-6):
-    for name, position in zip(msg.name, msg.position):
-        lo, hi = LIMITS_DEG[name]
-        if not lo - tol_deg <= math.degrees(position) <= hi + tol_deg:
-            return False
-    return True
 
 
 class Probe:
@@ -93,7 +78,8 @@ def test_graph_in_one_executor(context):
         assert 0 <= loc.point.x < 640 and 0 <= loc.point.y < 480
     assert probe.commands, 'the controller sent no joint command'
     for cmd in probe.commands:
-        assert set(cmd.name) <= set(JOINT_NAMES) and within_limits(cmd)
+        assert tuple(cmd.name) == JOINT_NAMES
+        assert within_limits([math.degrees(q) for q in cmd.position], tol=1e-6)
 
 
 def test_unsupported_images_are_skipped_and_logged_once(context):
