@@ -34,15 +34,11 @@ def model_params() -> list[Param]:
     """One ROS parameter per PerceptionConfig field, validated by the config's own check."""
     params = []
     for field in dataclasses.fields(PerceptionConfig):
-        default = field.default
-        if default is dataclasses.MISSING:
-            default = field.default_factory()
-
         def check(value, name=field.name):
             return PerceptionConfig.check(name, value)
 
-        params.append(Param(field.name, default, field.metadata.get('help', field.name), check,
-                            read_only=True))
+        params.append(Param(field.name, field.default, field.metadata.get('help', field.name),
+                            check, read_only=True))
     return params
 
 
