@@ -42,9 +42,8 @@ def test_graph_in_one_executor(context):
     from activeloc_ros.camera_node import CameraNode
     from activeloc_ros.controller_node import ControllerNode
     from activeloc_ros.perception_node import PerceptionNode
-    # 20 frames at 5 frames/s: perception keeps up on any machine, or drops frames
-    nodes = [CameraNode(context=context, cli_args=params_args('camera', 'rate:=0.5',
-                                                              'max_frames:=20')),
+    # the bag loops, so however fast this machine's perception is, maps keep coming
+    nodes = [CameraNode(context=context, cli_args=params_args('camera', 'loop:=true')),
              PerceptionNode(context=context, cli_args=params_args('perception')),
              ControllerNode(context=context, cli_args=params_args('controller')),
              ArmNode(context=context, cli_args=params_args('arm', 'backend:=sim'))]
@@ -53,17 +52,12 @@ def test_graph_in_one_executor(context):
     for node in nodes + [probe.node]:
         executor.add_node(node)
     try:
-        assert spin_until(executor, lambda: nodes[0].finished, 120), 'camera did not finish'
-        count = -1
-        while count != len(probe.maps):     # drain: until no new map for a second
-            count = len(probe.maps)
-            spin_until(executor, lambda: len(probe.maps) > count, 1.0)
+        assert spin_until(executor, lambda: len(probe.maps) >= 5, 120), 'too few maps'
         spin_until(executor, lambda: len(probe.locations) >= len(probe.maps), 2.0)
     finally:
         executor.shutdown()
         for node in nodes + [probe.node]:
             node.destroy_node()
-    assert len(probe.maps) >= 3
     for msg in probe.maps:
         assert [d.size for d in msg.layout.dim] == [14, 14]
         grid = np.asarray(msg.data).reshape(14, 14)
