@@ -14,6 +14,7 @@ import json
 import math
 import os
 from pathlib import Path
+import re
 from typing import Iterator, NamedTuple
 
 import cv2
@@ -27,6 +28,7 @@ GT_FILE = 'gt_xywh.txt'
 GT_ALL_FILE = 'gt_all_xywh.txt'
 REQUIRED_META = ('W', 'H', 'frames', 'camera')
 CAMERA_KINDS = ('static', 'moving', 'pan')
+DEFAULT_FPS = 30.0  # OTB and VOT give no rate; they were filmed at about 30 frames/s
 
 
 class Box(NamedTuple):
@@ -86,6 +88,17 @@ class Sequence:
     camera: str
     truth: tuple[FrameTruth, ...]
     meta: dict = field(repr=False, compare=False)
+
+    @property
+    def fps(self) -> float:
+        """The original frame rate: the leading number of `meta['fps']` ('25 (mpg header)',
+        '~30 (n/a)'), 30 when absent or unreadable."""
+        match = re.match(r'\s*~?\s*([0-9.]+)', str(self.meta.get('fps', '')))
+        try:
+            fps = float(match.group(1)) if match else DEFAULT_FPS
+        except ValueError:
+            fps = DEFAULT_FPS
+        return fps if 1.0 <= fps <= 1000.0 else DEFAULT_FPS
 
     def __len__(self) -> int:
         return len(self.truth)

@@ -1,0 +1,104 @@
+"""What steers the camera in the projected-screen benchmark: the model and the baselines.
+
+Each is a ``closed_loop.Pointer``; the trackers are in ``bench.trackers``. All of them
+drive the same controller and arm.
+"""
+import numpy as np
+
+from activeloc_ros.closed_loop import Pointing, View
+from activeloc_ros.errors import ConfigError
+
+# Paper Table 3 rows that change the perception (the controller rows are PD variants).
+ABLATIONS: dict[str, dict] = {
+    'full': {},
+    'predlearn': {'mode': 'predlearn'},           # PredLearn (Aakur & Sarkar) + PID
+    'no_norm_motion': {'motion': 'raw'},          # w/o normalized motion
+    'no_attn': {'use_attn_loss': False},          # w/o L_attn
+    'resnet50': {'encoder': 'resnet50'},          # w/ ResNet-50 encoder
+}
+
+
+class ModelPointer:
+    """The perception model, fresh (same seed) for every sequence; its encoder is shared.
+
+    :param settings: PerceptionConfig fields (a Table 3 ablation already applied).
+    """
+
+    def __init__(self, name: str, settings: dict):
+        from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
+        self.name = name
+        self.config = PerceptionConfig.from_dict(settings)
+        self._model_class = SurpriseModel
+        self.model = SurpriseModel(self.config)   # fails now if the weights are missing
+        self._fresh = True
+
+    def reset(self) -> None:
+        if not self._fresh:
+            self.model = self._model_class(self.config, encoder=self.model.encoder)
+        self._fresh = False
+
+    def locate(self, view: View) -> Pointing:
+        result = self.model.step(view.rgb)
+        return Pointing(result.location_px, result.surprise_map, result.peak)
+
+
+class CentrePointer:
+    """The camera never moves (it looks at the screen centre from the home pose)."""
+
+    name = 'centre'
+
+    def reset(self) -> None:
+        pass
+
+    def locate(self, view: View) -> Pointing:
+        return Pointing(None)
+
+
+class RandomPointer:
+    """Paper: 'a random location around the center of the screen' each frame, steered to.
+
+    :param spread: standard deviation of the target around the screen centre, as a share of
+        the camera image size (its width and height).
+    """
+
+    name = 'random'
+
+    def __init__(self, *, seed: int = 0, spread: float = 0.25):
+        if not spread > 0:
+            raise ConfigError(f'random spread must be > 0, got {spread}')
+        self.seed = seed
+        self.spread = spread
+        self.reset()
+
+    def reset(self) -> None:
+        self.rng = np.random.default_rng(self.seed)
+
+    def locate(self, view: View) -> Pointing:
+        h, w = view.rgb.shape[:2]
+        u, v = view.centre_px + self.rng.normal(0.0, self.spread, 2) * (w, h)
+        # the controller acts on pixels of the image only: a target beyond the border pulls
+        # the camera as far as the border does
+        return Pointing((float(np.clip(u, 0, w - 1)), float(np.clip(v, 0, h - 1))))
+
+
+class OraclePointer:
+    """The ground truth fed to the controller (the primary actor, else the closest one):
+    the upper bound, limited only by the arm. Points beyond the image are pulled in to its
+    border, where the controller takes them."""
+
+    name = 'oracle'
+
+    def reset(self) -> None:
+        pass
+
+    def locate(self, view: View) -> Pointing:
+        h, w = view.rgb.shape[:2]
+        target = view.primary_px
+        if target is None or not np.all(np.isfinite(target)):
+            finite = view.truth_px[np.all(np.isfinite(view.truth_px), axis=1)]
+            if len(finite) == 0:
+                return Pointing(None)
+            centre = np.array([(w - 1) / 2, (h - 1) / 2])
+            target = finite[np.argmin(np.linalg.norm(finite - centre, axis=1))]
+        return Pointing((float(np.clip(target[0], 0, w - 1)),
+                         float(np.clip(target[1], 0, h - 1))))
