@@ -1,6 +1,8 @@
 """Where the package's data files are (the source tree when run from it, else share/)."""
 import hashlib
+import os
 from pathlib import Path
+import tempfile
 
 SOURCE_ROOT = Path(__file__).resolve().parents[1]
 
@@ -23,3 +25,18 @@ def file_sha256(path: Path) -> str:
         for block in iter(lambda: stream.read(1 << 20), b''):
             digest.update(block)
     return digest.hexdigest()
+
+
+def write_atomic(path: Path, content: str | bytes) -> None:
+    """Write through a temporary file in the same folder, then rename over `path`: a reader
+    (or an interrupted run) never sees half a file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f'.{path.name}.', suffix='.tmp')
+    try:
+        with os.fdopen(fd, 'wb') as f:
+            f.write(content.encode('utf-8') if isinstance(content, str) else content)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

@@ -6,6 +6,8 @@ COMMANDS = {
     'perception': ('activeloc_ros.bench.perception', 'per-frame cost of the perception model'),
     'passive': ('activeloc_ros.bench.passive',
                 'does the map peak fall on the actor (fixed camera)'),
+    'screen': ('activeloc_ros.bench.screen',
+               'projected-screen experiment, closed loop (paper Table 2)'),
 }
 
 

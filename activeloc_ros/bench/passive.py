@@ -17,10 +17,8 @@ which is the distance from the image centre in width/height-normalised units) an
 import argparse
 from dataclasses import dataclass, field
 import json
-import os
 from pathlib import Path
 import sys
-import tempfile
 import time
 from typing import Callable, Protocol
 import zlib
@@ -30,6 +28,7 @@ import numpy as np
 
 from activeloc_ros import data, metrics
 from activeloc_ros.errors import ActivelocError, DataError
+from activeloc_ros.paths import write_atomic
 from activeloc_ros.progress import Progress
 
 GRID = (14, 14)
@@ -327,19 +326,6 @@ def markdown(result: dict) -> str:
     for name, reason in result['skipped']:
         lines.append(f'\nskipped {name}: {reason}')
     return '\n'.join(lines)
-
-
-def write_atomic(path: Path, text: str) -> None:
-    """Write through a temporary file in the same folder, then rename over `path`."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f'.{path.name}.', suffix='.tmp')
-    try:
-        with os.fdopen(fd, 'w', encoding='utf-8') as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _split(values: list[str] | None) -> list[str]:

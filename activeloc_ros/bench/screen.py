@@ -1,0 +1,464 @@
+"""The projected-screen benchmark (paper Sec. 4.2, Table 2), closed loop in simulated time.
+
+    python -m activeloc_ros.bench screen --data ../shared/data/sequences --out out/screen
+
+Every method drives the same controller and simulated Braccio through the virtual screen
+(``closed_loop.run_episode``). Per sequence and overall (the mean over sequences): AAE
+(degrees, to the closest annotated actor), AUC-Judd (the method's map laid on the screen
+where the camera looked, against the closest actor's centre; a method that gives only a
+point gets a Gaussian of one map cell there) and the in-view rate. Writes a Markdown table,
+a CSV, a JSON file, one plot per metric and an overlay video per run, all atomically.
+"""
+import argparse
+import csv
+import io
+import json
+import math
+import multiprocessing
+import os
+from pathlib import Path
+import sys
+import time
+
+import cv2
+import numpy as np
+
+from activeloc_ros import data
+from activeloc_ros.bench.pointers import (
+    ABLATIONS, CentrePointer, ModelPointer, OraclePointer, RandomPointer)
+from activeloc_ros.closed_loop import FrameRecord, MODES, run_episode
+from activeloc_ros.control import ControllerConfig, PD_VARIANTS, PDConfig
+from activeloc_ros.errors import ActivelocError, ConfigError, DataError
+from activeloc_ros.paths import write_atomic
+from activeloc_ros.progress import Progress
+from activeloc_ros.screen import ScreenConfig, VirtualScreen
+
+TRACKER_METHODS = ('tld', 'mil', 'mosse', 'kcf', 'csrt')
+MODEL_METHODS = ('ours', *(f'ours-{a}' for a in ABLATIONS if a != 'full'),
+                 *(f'ours-pd-{v}' for v in PD_VARIANTS if v != 'paper'))
+METHODS = (*MODEL_METHODS, 'random', 'centre', 'oracle', *TRACKER_METHODS)
+METRICS = (('aae_deg', 'AAE (deg)', 'lower is better'),
+           ('auc_judd', 'AUC-Judd (%)', 'higher is better'),
+           ('in_view', 'in view (%)', 'higher is better'))
+KIND_ORDER = {'static': 0, 'pan': 1, 'moving': 2}
+
+
+def method_parts(name: str) -> tuple[dict, str]:
+    """(PerceptionConfig overrides, PD variant) of a model method name."""
+    if name == 'ours':
+        return {}, 'paper'
+    if name.startswith('ours-pd-') and name[8:] in PD_VARIANTS:
+        return {}, name[8:]
+    if name.startswith('ours-') and name[5:] in ABLATIONS:
+        return dict(ABLATIONS[name[5:]]), 'paper'
+    raise ConfigError(f'unknown method {name!r}; known: {", ".join(METHODS)}')
+
+
+def make_pointer(name: str, settings: dict, seed: int):
+    """The pointer of a method (model methods get `settings` + their ablation)."""
+    if name in TRACKER_METHODS:
+        from activeloc_ros.bench.trackers import TrackerPointer
+        return TrackerPointer(name)
+    if name == 'random':
+        return RandomPointer(seed=seed)
+    if name == 'centre':
+        return CentrePointer()
+    if name == 'oracle':
+        return OraclePointer()
+    overrides, _ = method_parts(name)
+    return ModelPointer(name, {'seed': seed, **settings, **overrides})
+
+
+PD_OPTIONS = ('dead_band', 'derivative', 'derivative_tau')
+CONTROL_OPTIONS = ('settle_time', 'watchdog_timeout', 'step_delay_ms', 'min_peak')
+
+
+def controller_for(name: str, control: dict) -> ControllerConfig:
+    """The controller of a method: its PD variant plus the --control settings."""
+    unknown = sorted(set(control) - set(PD_OPTIONS) - set(CONTROL_OPTIONS))
+    if unknown:
+        raise ConfigError(f'unknown --control settings {unknown}; known: '
+                          f'{", ".join(PD_OPTIONS + CONTROL_OPTIONS)}')
+    variant = method_parts(name)[1] if name in MODEL_METHODS else 'paper'
+    pd = PDConfig.variant(variant, **{k: v for k, v in control.items() if k in PD_OPTIONS})
+    return ControllerConfig(pd=pd, **{k: v for k, v in control.items()
+                                      if k in CONTROL_OPTIONS})
+
+
+# -- one run (method x sequence), in a worker process ------------------------------------------
+
+_POINTERS: dict = {}   # per worker process: one pointer per method, its encoder reused
+
+
+def _pointer(name: str, settings: dict, seed: int):
+    key = (name, json.dumps(settings, sort_keys=True), seed)
+    if key not in _POINTERS:
+        _POINTERS[key] = make_pointer(name, settings, seed)
+    return _POINTERS[key]
+
+
+def run_job(job: dict) -> dict:
+    """Run one method on one sequence; returns its summary and per-frame records, or the
+    reason it failed (a bad sequence is a DataError)."""
+    if job.get('threads'):
+        import torch
+        torch.set_num_threads(job['threads'])
+    started = time.perf_counter()
+    seq = data.load_sequence(job['path'])
+    screen = VirtualScreen(ScreenConfig(**job['screen']))
+    try:
+        pointer = _pointer(job['method'], job['settings'], job['seed'])
+        frames = ((s.index, s.image, s.truth) for s in seq.frames(max_frames=job['max_frames']))
+        video = None
+        if job['video']:
+            video = OverlayVideo(Path(job['video']), screen, seq.fps, job['method'])
+        try:
+            episode = run_episode(frames, pointer, fps=seq.fps, screen=screen,
+                                  controller=controller_for(job['method'], job['control']),
+                                  mode=job['mode'], name=seq.name,
+                                  on_frame=video.add if video else None)
+        except BaseException:
+            if video:
+                video.abandon()
+            raise
+        if video:
+            video.finish()
+    except (DataError, OSError) as err:
+        return {'method': job['method'], 'sequence': seq.name, 'error': str(err)}
+    return {'method': job['method'], 'sequence': seq.name, 'camera': seq.camera_kind,
+            'summary': episode.summary(), 'seconds': time.perf_counter() - started,
+            'frames': [_frame_row(r) for r in episode.records]}
+
+
+def _frame_row(r: FrameRecord) -> list:
+    return [r.index, round(r.t, 4), round(math.degrees(r.pan), 3),
+            round(math.degrees(r.tilt), 3), r.processed, r.scored,
+            None if math.isnan(r.aae_deg) else round(r.aae_deg, 3), r.in_view,
+            None if math.isnan(r.auc) else round(r.auc, 4)]
+
+
+FRAME_COLUMNS = ['index', 't', 'pan_deg', 'tilt_deg', 'processed', 'scored', 'aae_deg',
+                 'in_view', 'auc_judd']
+
+
+class OverlayVideo:
+    """The whole screen with the camera's view (yellow), the truth (green) and the
+    method's newest location (red), the camera image inset; written to a temporary file
+    and renamed at the end, so an interrupted run leaves no half video."""
+
+    def __init__(self, path: Path, screen: VirtualScreen, fps: float, label: str, *,
+                 max_width: int = 640):
+        self.path = path
+        self.screen = screen
+        self.fps = fps
+        self.label = label
+        self.max_width = max_width
+        self.tmp = path.with_name(f'.{path.stem}.tmp{path.suffix}')
+        self.writer = None
+
+    def add(self, scene: np.ndarray, record: FrameRecord, camera: np.ndarray) -> None:
+        h, w = scene.shape[:2]
+        scale = min(1.0, self.max_width / w)
+        size = (int(round(w * scale)) // 2 * 2, int(round(h * scale)) // 2 * 2)
+        if self.writer is None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.writer = cv2.VideoWriter(str(self.tmp), cv2.VideoWriter_fourcc(*'mp4v'),
+                                          self.fps, size)
+            if not self.writer.isOpened():
+                raise OSError(f'OpenCV cannot write {self.tmp}')
+        frame = cv2.resize(cv2.cvtColor(scene, cv2.COLOR_RGB2BGR), size,
+                           interpolation=cv2.INTER_AREA)
+        sx, sy = size[0] / w, size[1] / h
+        outline = self.screen.view_outline(record.pan, record.tilt, (w, h))
+        if len(outline):
+            pts = np.round((outline + 0.5) * (sx, sy)).astype(np.int32)
+            cv2.polylines(frame, [pts], True, (0, 220, 255), 2)
+        if record.truth_xy is not None:
+            x, y = record.truth_xy
+            cv2.circle(frame, (int((x + 0.5) * sx), int((y + 0.5) * sy)), 7, (0, 255, 0), 2)
+        if record.predicted_xy is not None:
+            x, y = record.predicted_xy
+            cv2.drawMarker(frame, (int((x + 0.5) * sx), int((y + 0.5) * sy)), (0, 0, 255),
+                           cv2.MARKER_CROSS, 16, 2)
+        inset_w = size[0] // 4
+        inset = cv2.resize(cv2.cvtColor(camera, cv2.COLOR_RGB2BGR),
+                           (inset_w, inset_w * camera.shape[0] // camera.shape[1]))
+        frame[-inset.shape[0]:, -inset_w:] = inset
+        aae = '' if math.isnan(record.aae_deg) else f'  AAE {record.aae_deg:5.1f} deg'
+        cv2.putText(frame, f'{self.label}  frame {record.index}{aae}', (6, 18),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+        self.writer.write(frame)
+
+    def finish(self) -> None:
+        if self.writer is not None:
+            self.writer.release()
+            os.replace(self.tmp, self.path)
+
+    def abandon(self) -> None:
+        if self.writer is not None:
+            self.writer.release()
+        self.tmp.unlink(missing_ok=True)
+
+
+# -- the whole benchmark ---------------------------------------------------------------------
+
+def evaluate(sequences: list[data.Sequence], methods: list[str], *, mode: str,
+             screen: dict, settings: dict, control: dict, seed: int, jobs: int,
+             max_frames: int | None, video_dir: Path | None, quiet: bool) -> dict:
+    """Run every method on every sequence (in `jobs` worker processes)."""
+    threads = max(1, (os.cpu_count() or 1) // jobs)
+    work = []
+    for seq in sequences:
+        for method in methods:
+            video = str(video_dir / seq.name / f'{method}.mp4') if video_dir else ''
+            work.append({'path': str(seq.path), 'method': method, 'settings': settings,
+                         'seed': seed, 'mode': mode, 'screen': screen, 'control': control,
+                         'max_frames': max_frames, 'video': video, 'threads': threads})
+    # the model methods first (the slow ones), so the fast ones fill the gaps at the end
+    work.sort(key=lambda j: (j['method'] not in MODEL_METHODS, j['method'] == 'ours-resnet50'))
+    work.sort(key=lambda j: j['method'] != 'ours-resnet50')
+    length = {s.name: len(s) if max_frames is None else min(len(s), max_frames)
+              for s in sequences}
+    progress = None if quiet else Progress(sum(length[Path(j['path']).name] for j in work),
+                                           'screen frames')
+    runs = []
+    if jobs == 1:
+        results = map(run_job, work)
+        pool = None
+    else:
+        pool = multiprocessing.get_context('spawn').Pool(jobs, maxtasksperchild=None)
+        results = pool.imap_unordered(run_job, work)
+    try:
+        for run in results:
+            runs.append(run)
+            if progress is not None:
+                progress.update(length[run['sequence']],
+                                note=f'{run["method"]} on {run["sequence"]}')
+    finally:
+        if pool is not None:
+            pool.terminate()
+    if progress is not None:
+        progress.close()
+    return summarise(runs, methods, sequences)
+
+
+def summarise(runs: list[dict], methods: list[str], sequences: list[data.Sequence]) -> dict:
+    """Per-method means over the sequences every method completed."""
+    failed = {}
+    for run in runs:
+        if 'error' in run:
+            failed.setdefault(run['sequence'], run['error'])
+    kept = [s.name for s in sequences if s.name not in failed]
+    by_key = {(r['method'], r['sequence']): r for r in runs if 'error' not in r}
+    rows = []
+    for method in methods:
+        per_seq = {name: {**by_key[(method, name)]['summary'],
+                          'camera': by_key[(method, name)]['camera']} for name in kept}
+        row = {'method': method}
+        for key, _, _ in METRICS:
+            values = [v[key] for v in per_seq.values() if not math.isnan(v[key])]
+            row[key] = float(np.mean(values)) if values else math.nan
+        row['compute_ms'] = float(np.mean([v['compute_ms'] for v in per_seq.values()])
+                                  ) if per_seq else math.nan
+        row['sequences'] = per_seq
+        rows.append(row)
+    frames = {f'{r["method"]}/{r["sequence"]}': r['frames'] for r in runs if 'error' not in r}
+    return {'methods': rows, 'sequences': kept, 'skipped': sorted(failed.items()),
+            'frames': frames, 'frame_columns': FRAME_COLUMNS}
+
+
+def _fmt(key: str, value: float) -> str:
+    if value != value:
+        return '-'
+    return f'{value:.2f}' if key == 'aae_deg' else f'{100 * value:.1f}'
+
+
+def markdown(result: dict) -> str:
+    lines = ['| method | AAE (deg) ↓ | AUC-Judd (%) ↑ | in view (%) ↑ | ms/frame |',
+             '|---|---:|---:|---:|---:|']
+    for row in result['methods']:
+        lines.append(f'| {row["method"]} | ' + ' | '.join(
+            _fmt(k, row[k]) for k, _, _ in METRICS) + f' | {row["compute_ms"]:.1f} |')
+    lines.append(f'\nmeans over {len(result["sequences"])} sequences: '
+                 + ', '.join(result['sequences']))
+    for key, title, _ in METRICS:
+        lines += ['', f'{title} per sequence', '',
+                  '| method | ' + ' | '.join(result['sequences']) + ' |',
+                  '|---|' + '---:|' * len(result['sequences'])]
+        for row in result['methods']:
+            lines.append(f'| {row["method"]} | ' + ' | '.join(
+                _fmt(key, row['sequences'][n][key]) for n in result['sequences']) + ' |')
+    for name, reason in result['skipped']:
+        lines.append(f'\nskipped {name}: {reason}')
+    return '\n'.join(lines) + '\n'
+
+
+def to_csv(result: dict) -> str:
+    out = io.StringIO()
+    w = csv.writer(out)
+    w.writerow(['method', 'sequence', 'aae_deg', 'auc_judd', 'in_view', 'compute_ms'])
+    for row in result['methods']:
+        w.writerow([row['method'], 'mean', *(f'{row[k]:.4f}' for k, _, _ in METRICS),
+                    f'{row["compute_ms"]:.2f}'])
+        for name in result['sequences']:
+            s = row['sequences'][name]
+            w.writerow([row['method'], name, *(f'{s[k]:.4f}' for k, _, _ in METRICS),
+                        f'{s["compute_ms"]:.2f}'])
+    return out.getvalue()
+
+
+def plots(result: dict, out: Path) -> list[Path]:
+    """One bar chart per metric: methods x sequences (PNG, written atomically)."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    names = result['sequences']
+    paths = []
+    for key, title, better in METRICS:
+        fig, ax = plt.subplots(figsize=(max(8, 1.1 * len(names) + 3), 4.5))
+        n = len(result['methods'])
+        width = 0.8 / max(n, 1)
+        for i, row in enumerate(result['methods']):
+            values = [row['sequences'][s][key] for s in names]
+            if key != 'aae_deg':
+                values = [100 * v for v in values]
+            ax.bar(np.arange(len(names)) + i * width - 0.4 + width / 2, values, width,
+                   label=row['method'])
+        ax.set_xticks(np.arange(len(names)), names, rotation=30, ha='right', fontsize=8)
+        ax.set_ylabel(title)
+        ax.set_title(f'{title} per sequence ({better})')
+        ax.legend(fontsize=7, ncol=2, loc='upper left', bbox_to_anchor=(1.0, 1.0))
+        fig.tight_layout()
+        buf = io.BytesIO()
+        fig.savefig(buf, format='png', dpi=110)
+        plt.close(fig)
+        path = out / f'{key}.png'
+        write_atomic(path, buf.getvalue())
+        paths.append(path)
+    return paths
+
+
+# -- command line ----------------------------------------------------------------------------
+
+def _split(values: list[str] | None) -> list[str]:
+    return [v for item in values or [] for v in item.split(',') if v]
+
+
+def _settings(items: list[str], what: str) -> dict:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition('=')
+        if not sep or not key:
+            raise ConfigError(f'{what} expects KEY=VALUE, got {item!r}')
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog='python -m activeloc_ros.bench screen',
+        description='The projected-screen experiment (paper Table 2) in simulated time: '
+                    'each method steers the simulated Braccio through a virtual screen; '
+                    'AAE, AUC-Judd and in-view rate per sequence and overall.')
+    p.add_argument('--data', help=f'sequence root (default ${data.ENV_VAR} or '
+                                  '../shared/data/sequences beside the repo)')
+    p.add_argument('--methods', nargs='+', metavar='NAME',
+                   help=f'methods (default all): {", ".join(METHODS)}')
+    p.add_argument('--sequences', nargs='+', metavar='NAME', help='only these sequences')
+    p.add_argument('--camera', nargs='+', choices=sorted(KIND_ORDER), metavar='KIND',
+                   help='only sequences of these camera kinds: static, pan, moving')
+    p.add_argument('--mode', choices=MODES, default='lockstep',
+                   help='lockstep: every frame processed, deterministic (default); realtime: '
+                        'frames the method is too slow for are dropped')
+    p.add_argument('--max-frames', type=int, metavar='N', help='first N frames of each')
+    p.add_argument('--set', nargs='+', metavar='KEY=VALUE', default=[],
+                   help='PerceptionConfig fields for every model method, e.g. lr=1e-4')
+    p.add_argument('--screen', nargs='+', metavar='KEY=VALUE', default=[],
+                   help='ScreenConfig fields, e.g. view_fraction=0.3 width=640 height=480')
+    p.add_argument('--control', nargs='+', metavar='KEY=VALUE', default=[],
+                   help='controller settings for every method: ' + ', '.join(
+                       PD_OPTIONS + CONTROL_OPTIONS) + " (dead_band in radians; "
+                   "derivative=error is the paper's literal PD)")
+    p.add_argument('--jobs', type=int, default=min(2, os.cpu_count() or 1), metavar='N',
+                   help='worker processes (default: 2 or the number of cores)')
+    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--json', action='store_true', help='one JSON object per method on stdout')
+    p.add_argument('--out', metavar='DIR', default='out/screen',
+                   help='results, plots and videos go here (default out/screen)')
+    p.add_argument('--no-video', action='store_true', help='no overlay videos')
+    p.add_argument('--quiet', action='store_true', help='no progress on stderr')
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    try:
+        if args.max_frames is not None and args.max_frames < 1:
+            raise ConfigError('--max-frames must be >= 1')
+        if args.jobs < 1:
+            raise ConfigError('--jobs must be >= 1')
+        methods = _split(args.methods) or list(METHODS)
+        for m in methods:
+            if m not in METHODS:
+                raise ConfigError(f'unknown method {m!r}; known: {", ".join(METHODS)}')
+        screen = _settings(args.screen, '--screen')
+        geometry = VirtualScreen(ScreenConfig.from_dict(screen))
+        settings = _settings(args.set, '--set')
+        control = _settings(args.control, '--control')
+        controller_for('ours', control)
+        if any(m in MODEL_METHODS for m in methods):
+            ModelPointer('check', {'seed': args.seed, **settings})  # weights, settings: now
+        root = data.resolve_data_root(args.data)
+        sequences, skipped = data.load_sequences(root, names=_split(args.sequences),
+                                                 cameras=args.camera)
+    except ActivelocError as err:
+        print(f'error: {err}', file=sys.stderr)
+        return 2
+    for name, reason in skipped:
+        print(f'skipping {name}: {reason}', file=sys.stderr)
+    if not sequences:
+        print(f'error: no usable sequence under {root}', file=sys.stderr)
+        return 1
+    sequences.sort(key=lambda s: (KIND_ORDER[s.camera_kind], s.name))
+    out = Path(args.out)
+    if not args.quiet:
+        print(f'{len(methods)} methods x {len(sequences)} sequences, {args.mode}; '
+              f'{geometry.describe()}', file=sys.stderr)
+    started = time.monotonic()
+    result = evaluate(sequences, methods, mode=args.mode, screen=screen, settings=settings,
+                      control=control, seed=args.seed, jobs=args.jobs,
+                      max_frames=args.max_frames, quiet=args.quiet,
+                      video_dir=None if args.no_video else out / 'videos')
+    result['skipped'] = skipped + result['skipped']
+    for name, reason in result['skipped']:
+        print(f'skipped {name}: {reason}', file=sys.stderr)
+    result['settings'] = {
+        'data': str(root), 'mode': args.mode, 'screen': geometry.describe(),
+        'screen_config': screen, 'set': settings, 'seed': args.seed,
+        'control': control, 'max_frames': args.max_frames, 'jobs': args.jobs,
+        'seconds': round(time.monotonic() - started, 1)}
+    table = markdown(result)
+    write_atomic(out / 'screen.json', json.dumps(result) + '\n')
+    write_atomic(out / 'screen.md', table)
+    write_atomic(out / 'screen.csv', to_csv(result))
+    pictures = plots(result, out) if result['sequences'] else []
+    if args.json:
+        for row in result['methods']:
+            print(json.dumps({'method': row['method'],
+                              **{k: row[k] for k, _, _ in METRICS},
+                              'sequences': {n: {k: v[k] for k, _, _ in METRICS}
+                                            for n, v in row['sequences'].items()}}))
+    else:
+        print(table, end='')
+        print(f'\nwrote {out}/screen.md, screen.csv, screen.json, '
+              + ', '.join(p.name for p in pictures)
+              + ('' if args.no_video else ', videos/<sequence>/<method>.mp4'))
+        print(f'{result["settings"]["seconds"]:.0f} s')
+    return 0 if result['sequences'] else 1
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
