@@ -250,9 +250,11 @@ def test_after_a_hold_tracking_restarts_without_a_derivative_kick():
 
 def test_closed_loop_step_response_on_the_servo_model():
     """A still action 20 deg to the left, 10 fps, servos at 50 deg/s (5 deg a frame): the
-    camera ramps there at the servos' speed and settles inside the dead band."""
+    camera ramps there at the servos' speed and settles inside the dead band (the paper's
+    loop: acting on frames seen while moving)."""
     from activeloc_ros.control import SimArm
-    ctl = make_controller(pd=PDConfig(kp=1.0, kd=0.1, dead_band=math.radians(1.0)))
+    ctl = make_controller(pd=PDConfig(kp=1.0, kd=0.1, dead_band=math.radians(1.0)),
+                          settle_time=0.0)
     arm = SimArm(HOME_DEG, 0.0)
     action = 20.0
     pans = []
@@ -288,3 +290,21 @@ def test_latency_percentiles():
         stats.add(ms / 1000)
     stats.add(math.nan)
     assert stats.summary() == {'n': 100, 'p50': 0.05, 'p95': 0.095}
+
+
+def test_settle_time_ignores_frames_seen_by_a_moving_camera():
+    """With settle_time, a location counts only if the camera stood still for that long
+    before the frame was captured."""
+    ctl = make_controller(pd=PDConfig(dead_band=0.0), settle_time=0.3)
+    still = list(HOME_DEG)
+    moved = [HOME_DEG[0] + 5, *HOME_DEG[1:]]
+    for k in range(5):                      # still from 0.0 to 0.4 s
+        ctl.observe_joints(still, k * 0.1)
+    assert ctl.on_location(pixel_for(10.0), D435.cy, 0.4, 0.4) is not None
+    ctl.observe_joints(moved, 0.5)          # a move between 0.4 and 0.5 s
+    for k in range(6, 9):
+        ctl.observe_joints(moved, k * 0.1)
+    assert ctl.on_location(pixel_for(10.0), D435.cy, 0.7, 0.7) is None
+    assert ctl.ignored == {'camera moving': 1}
+    ctl.observe_joints(moved, 0.9)
+    assert ctl.on_location(pixel_for(10.0), D435.cy, 0.9, 0.9) is not None  # 0.4 s still

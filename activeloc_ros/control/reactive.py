@@ -26,6 +26,11 @@ class ControllerConfig:
     :param pose_slack: how far (s) a capture stamp may lie outside the joint-state history
         and still be looked up in it; farther (e.g. a replayed bag's old stamps) uses the
         newest pose.
+    :param settle_time: ignore locations from frames captured while the camera moved, or
+        less than this many seconds after it stopped (0: never, the paper's loop). The
+        camera's own motion makes the whole view unpredictable, most of all where new
+        content enters at the border it moves towards, so a moving camera's map points
+        further along its own motion.
     """
 
     pd: PDConfig = field(default_factory=PDConfig)
@@ -34,6 +39,7 @@ class ControllerConfig:
     step_delay_ms: float = 20.0
     min_peak: float = -math.inf
     pose_slack: float = 0.5
+    settle_time: float = 0.3
 
     def __post_init__(self):
         if not math.isfinite(self.watchdog_timeout) or self.watchdog_timeout <= 0:
@@ -42,6 +48,8 @@ class ControllerConfig:
             raise ConfigError('min_peak must not be NaN')
         if not math.isfinite(self.pose_slack) or self.pose_slack < 0:
             raise ConfigError(f'pose_slack must be >= 0 s, got {self.pose_slack}')
+        if not math.isfinite(self.settle_time) or self.settle_time < 0:
+            raise ConfigError(f'settle_time must be >= 0 s, got {self.settle_time}')
         speed_deg_s(self.step_delay_ms)  # validates the range
 
 
@@ -80,6 +88,9 @@ class PoseHistory:
             self._t.popleft()
             self._q.popleft()
         return True
+
+    def samples(self) -> list[tuple[float, tuple[float, ...]]]:
+        return list(zip(self._t, self._q))
 
     @property
     def newest(self) -> tuple[float, tuple[float, ...]] | None:
@@ -179,6 +190,14 @@ class ReactiveController:
         pose = self.history.at(t, self.config.pose_slack)
         return pose if pose is not None else self.guard.last_deg
 
+    def _moved(self, t_capture: float) -> bool:
+        """Did the camera move within ``settle_time`` before ``t_capture``?"""
+        now = self._pose_at(t_capture)
+        start = t_capture - self.config.settle_time
+        times = [t for t, _ in self.history.samples() if start < t < t_capture]
+        return any(max(abs(a - b) for a, b in zip(self._pose_at(t), now)) > 0.5
+                   for t in [start, *times])
+
     def current_pose(self, t_now: float) -> tuple[float, ...]:
         """Best estimate of where the arm is: a fresh measured state, else the last command."""
         newest = self.history.newest
@@ -209,6 +228,9 @@ class ReactiveController:
             return None
         if t_capture <= self._last_capture:
             self._ignore('out of order')
+            return None
+        if self.config.settle_time > 0 and self._moved(t_capture):
+            self._ignore('camera moving')
             return None
         if self._holding or t_now - self._last_accept > self.config.watchdog_timeout:
             self.pd.reset()  # a fresh start: no derivative across a gap
