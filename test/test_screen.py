@@ -1,0 +1,232 @@
+"""The virtual screen, the closed loop in simulated time and the screen benchmark's CLI."""
+import json
+import math
+from pathlib import Path
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from activeloc_ros import data
+from activeloc_ros.bench import screen as bench
+from activeloc_ros.bench.pointers import CentrePointer, OraclePointer, RandomPointer
+from activeloc_ros.closed_loop import gaze_map, Pointing, run_episode
+from activeloc_ros.control import angular_error, ControllerConfig
+from activeloc_ros.errors import ConfigError
+from activeloc_ros.screen import ScreenConfig, VirtualScreen
+
+SCENE = (320, 180)
+
+
+def polygon_area(points: np.ndarray) -> float:
+    x, y = points[:, 0], points[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1))))
+
+
+def test_home_view_is_centred_and_covers_the_view_fraction():
+    screen = VirtualScreen(ScreenConfig(view_fraction=0.3))
+    centre = ((SCENE[0] - 1) / 2, (SCENE[1] - 1) / 2)
+    u, v = screen.project([centre], 0.0, 0.0, SCENE)[0]
+    assert (u, v) == pytest.approx(((640 - 1) / 2, (480 - 1) / 2))
+    outline = screen.view_outline(0.0, 0.0, SCENE, samples=1)
+    assert polygon_area(outline) / (SCENE[0] * SCENE[1]) == pytest.approx(0.3, rel=1e-6)
+    assert screen.home_fraction == pytest.approx(0.3)
+
+
+def test_explicit_distance_sets_the_fraction():
+    near = VirtualScreen(ScreenConfig(distance_m=0.5))
+    far = VirtualScreen(ScreenConfig(distance_m=1.0))
+    assert far.home_fraction == pytest.approx(4 * near.home_fraction)
+    assert near.distance == 0.5
+
+
+@pytest.mark.parametrize('pan,tilt', [(0.2, 0.0), (-0.3, 0.1), (0.1, -0.25), (0.4, 0.3)])
+def test_controller_error_centres_the_point(pan, tilt):
+    """The controller's angular error, applied to the pose, puts the point on the axis."""
+    screen = VirtualScreen()
+    point = (250.0, 40.0)
+    u, v = screen.project([point], pan, tilt, SCENE)[0]
+    d_pan, d_tilt = angular_error(u, v, screen.intrinsics, camera_tilt=tilt)
+    assert screen.angles_deg([point], pan, tilt, SCENE)[0] > 5.0
+    assert screen.angles_deg([point], pan + d_pan, tilt + d_tilt, SCENE)[0] < 1e-6
+    back = screen.to_scene([(u, v)], pan, tilt, SCENE)[0]
+    assert back == pytest.approx(point)
+
+
+def test_render_shows_a_marker_where_it_projects_and_pan_left_moves_it_right():
+    screen = VirtualScreen(ScreenConfig(width=320, height=240))
+    scene = np.zeros((SCENE[1], SCENE[0], 3), np.uint8)
+    scene[85:95, 150:160] = 255
+    for pan in (0.0, 0.2):
+        image = screen.render(scene, pan, 0.0)
+        ys, xs = np.nonzero(image[..., 0] > 128)
+        expected = screen.project([(154.5, 89.5)], pan, 0.0, SCENE)[0]
+        assert (xs.mean(), ys.mean()) == pytest.approx(tuple(expected), abs=1.0)
+        if pan:
+            assert xs.mean() > first_x + 20     # turning left moves the scene right
+        first_x = xs.mean()
+
+
+def test_rays_that_miss_the_screen_render_black():
+    screen = VirtualScreen(ScreenConfig(width=160, height=120))
+    scene = np.full((SCENE[1], SCENE[0], 3), 200, np.uint8)
+    image = screen.render(scene, math.radians(89.0), 0.0)   # looking along the screen
+    assert image[:, :40].max() == 0 and image.max() == 200
+
+
+def test_place_map_puts_the_peak_where_the_camera_looked():
+    screen = VirtualScreen()
+    heat = np.zeros((14, 14), np.float32)
+    heat[3, 10] = 1.0
+    for pan, tilt in [(0.0, 0.0), (0.3, -0.1)]:
+        placed = screen.place_map(heat, pan, tilt, (96, 54))
+        cell_px = ((10 + 0.5) * 640 / 14 - 0.5, (3 + 0.5) * 480 / 14 - 0.5)
+        x, y = screen.to_scene([cell_px], pan, tilt, (96, 54))[0]
+        row, col = np.unravel_index(np.argmax(placed), placed.shape)
+        assert abs(col - x) <= 1.5 and abs(row - y) <= 1.5
+        assert placed.min() == -1.0 and 0.2 < np.mean(placed > -1) < 0.4
+
+
+def test_bad_screen_settings():
+    with pytest.raises(ConfigError, match='view_fraction'):
+        ScreenConfig(view_fraction=0.0)
+    with pytest.raises(ConfigError, match='unknown screen settings'):
+        ScreenConfig.from_dict({'size': 3})
+
+
+def test_gaze_map_peaks_at_the_point():
+    heat = gaze_map((600.0, 20.0), (640, 480))
+    assert np.unravel_index(np.argmax(heat), heat.shape) == (0, 13)
+    assert np.all(gaze_map(None, (640, 480)) == 1.0)
+
+
+# -- synthetic scenes ------------------------------------------------------------------------
+
+def make_walker(root: Path, name: str = 'walker', n: int = 40, *, fps: float = 10.0) -> Path:
+    """A bright square walking left to right across a textured scene, the GT its box."""
+    path = root / name
+    (path / 'img').mkdir(parents=True)
+    w, h = SCENE
+    rng = np.random.default_rng(0)
+    background = cv2.GaussianBlur(rng.integers(0, 120, (h, w, 3), dtype=np.uint8), (5, 5), 0)
+    rows = []
+    for i in range(n):
+        img = background.copy()
+        x, y = 20 + int(6.5 * i), 80
+        img[y:y + 16, x:x + 16] = 255
+        cv2.imwrite(str(path / 'img' / f'{i:03d}.png'), img)
+        rows.append(f'{x},{y},16,16')
+    meta = {'W': w, 'H': h, 'frames': n, 'camera': 'STATIC', 'frames_glob': 'img/*.png',
+            'fps': f'{fps} (synthetic)'}
+    (path / 'meta.json').write_text(json.dumps(meta))
+    (path / 'gt_xywh.txt').write_text('\n'.join(rows) + '\n')
+    return path
+
+
+def episode(seq: data.Sequence, pointer, mode: str = 'lockstep'):
+    return run_episode(((s.index, s.image, s.truth) for s in seq.frames()), pointer,
+                       fps=seq.fps, screen=VirtualScreen(ScreenConfig(width=320, height=240)),
+                       controller=ControllerConfig(settle_time=0.0), mode=mode, name=seq.name)
+
+
+def test_oracle_follows_the_walker_and_centre_loses_it(tmp_path):
+    seq = data.load_sequence(make_walker(tmp_path))
+    assert seq.fps == 10.0
+    oracle = episode(seq, OraclePointer()).summary()
+    centre = episode(seq, CentrePointer()).summary()
+    assert oracle['scored'] == 40 and oracle['processed'] == 40
+    assert oracle['aae_deg'] < 10.0 < 20.0 < centre['aae_deg']   # it starts 40 deg away
+    assert oracle['in_view'] >= 0.9 > 0.6 > centre['in_view']
+    assert oracle['auc_judd'] > 0.9 > centre['auc_judd']
+
+
+def test_lockstep_is_deterministic(tmp_path):
+    seq = data.load_sequence(make_walker(tmp_path))
+    runs = [[(r.pan, r.tilt, r.auc) for r in episode(seq, RandomPointer(seed=3)).records]
+            for _ in range(2)]
+    assert runs[0] == runs[1]
+    assert len({p for p, _, _ in runs[0]}) > 5      # the random target does move the camera
+
+
+class SlowOracle(OraclePointer):
+    """The oracle, taking `delay` seconds per frame."""
+
+    def __init__(self, delay: float):
+        self.delay = delay
+
+    def locate(self, view) -> Pointing:
+        time.sleep(self.delay)
+        return super().locate(view)
+
+
+def test_realtime_drops_frames_a_slow_pointer_cannot_take(tmp_path):
+    seq = data.load_sequence(make_walker(tmp_path, fps=20.0))
+    lock = episode(seq, SlowOracle(0.12))
+    real = episode(seq, SlowOracle(0.12), mode='realtime')
+    assert lock.summary()['processed'] == 40
+    # a frame every 50 ms, 120+ ms each: at most every second frame goes through
+    assert real.summary()['processed'] <= 21
+    assert real.summary()['aae_deg'] > lock.summary()['aae_deg']
+
+
+def test_bad_mode_is_refused(tmp_path):
+    seq = data.load_sequence(make_walker(tmp_path, n=3))
+    with pytest.raises(ConfigError, match='mode'):
+        episode(seq, CentrePointer(), mode='fast')
+
+
+# -- the command ---------------------------------------------------------------------------
+
+def test_cli_table_csv_plots_videos_and_bad_sequences(tmp_path, capsys):
+    root = tmp_path / 'data'
+    make_walker(root, 'a_walker', n=12)
+    make_walker(root, 'b_walker', n=12)
+    broken = make_walker(root, 'c_broken', n=12)
+    (broken / 'img' / '006.png').write_bytes(b'not an image')
+    bad_gt = make_walker(root, 'd_bad_gt', n=12)
+    (bad_gt / 'gt_xywh.txt').write_text('1,2,3,4\n' * 11 + 'x,2,3,4\n')
+    out = tmp_path / 'out'
+    args = ['--data', str(root), '--methods', 'oracle', 'centre', '--jobs', '1', '--out',
+            str(out), '--screen', 'width=320', 'height=240', '--quiet']
+    assert bench.main(args) == 0
+    captured = capsys.readouterr()
+    assert '| oracle |' in captured.out and '| centre |' in captured.out
+    assert 'c_broken' in captured.err and '006.png' in captured.err
+    assert 'd_bad_gt' in captured.err and 'gt_xywh.txt:12' in captured.err
+    result = json.loads((out / 'screen.json').read_text())
+    assert result['sequences'] == ['a_walker', 'b_walker']
+    assert [r['method'] for r in result['methods']] == ['oracle', 'centre']
+    rows = (out / 'screen.csv').read_text().splitlines()
+    assert rows[0].startswith('method,sequence,aae_deg') and len(rows) == 1 + 2 * 3
+    for name in ('aae_deg', 'auc_judd', 'in_view'):
+        assert (out / f'{name}.png').read_bytes()[:4] == b'\x89PNG'
+    video = cv2.VideoCapture(str(out / 'videos' / 'a_walker' / 'oracle.mp4'))
+    assert int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == 12
+    assert not list(out.rglob('.*tmp*'))          # no temporary file left behind
+
+    assert bench.main(args + ['--json', '--no-video']) == 0
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [d['method'] for d in lines] == ['oracle', 'centre']
+    assert set(lines[0]['sequences']) == {'a_walker', 'b_walker'}
+    assert lines[0]['aae_deg'] < lines[1]['aae_deg']
+
+
+@pytest.mark.parametrize('args,message', [
+    (['--methods', 'magic'], 'unknown method'),
+    (['--screen', 'view_fraction=2'], 'view_fraction'),
+    (['--control', 'gain=3'], 'unknown --control'),
+    (['--max-frames', '0'], '--max-frames'),
+])
+def test_cli_refuses_bad_options(tmp_path, capsys, args, message):
+    make_walker(tmp_path, n=3)
+    assert bench.main(['--data', str(tmp_path), '--quiet', '--no-video', '--out',
+                       str(tmp_path / 'out'), '--methods', 'centre', *args]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_help(capsys):
+    with pytest.raises(SystemExit) as exc:
+        bench.main(['--help'])
+    assert exc.value.code == 0
+    assert '--mode' in capsys.readouterr().out
