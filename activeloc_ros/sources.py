@@ -10,6 +10,10 @@ as the device does. `open_source(spec)` parses the spec strings the camera node 
     folder:PATH     the images of a folder, sorted by name
     device:N        OpenCV capture device N
     realsense       the colour stream of an Intel RealSense (pyrealsense2)
+    virtual:SCENE   a recorded scene on the virtual projection screen, seen by the camera
+                    the arm aims (`screen.VirtualScreen`); SCENE is bag:PATH, video:PATH,
+                    folder:PATH, an annotated sequence folder (with meta.json) or the name
+                    of a sequence in the data root (`data.resolve_data_root`)
 """
 from collections import Counter
 from dataclasses import dataclass
@@ -20,12 +24,18 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from activeloc_ros import bag
-from activeloc_ros.errors import FrameError, SourceError
+from activeloc_ros import bag, data
+from activeloc_ros.errors import DataError, FrameError, SourceError
 from activeloc_ros.images import decode_compressed, image_to_rgb
 from activeloc_ros.paths import share_path
+from activeloc_ros.screen import VirtualScreen
 
 IMAGE_SUFFIXES = ('.jpg', '.jpeg', '.png', '.bmp', '.ppm', '.pgm', '.tif', '.tiff', '.webp')
+DEFAULT_SCENE_FPS = 10.0     # a scene that knows no rate of its own (a bag of one frame)
+SCENE_KINDS = ('bag', 'video', 'folder')
+SCENE_HELP = ('virtual:bag:PATH, virtual:video:PATH, virtual:folder:PATH, '
+              'virtual:SEQUENCE_DIR (with meta.json) or virtual:NAME (a sequence in the '
+              'data root)')
 
 
 @dataclass
@@ -72,6 +82,10 @@ class BagSource(Source):
         self.topic = bag.choose_image_topic(self.facts, topic)
         self.path = Path(path)
         self._k = self._recorded_camera_matrix()
+        # the mean recorded rate (the virtual screen shows the frames at it)
+        duration = self.facts.duration_s
+        if self.topic.count > 1 and duration > 0:
+            self.fps = round((self.topic.count - 1) / duration, 3)
         self.rewind()
 
     def _recorded_camera_matrix(self) -> np.ndarray | None:
@@ -234,14 +248,137 @@ class RealSenseSource(Source):
         self._pipeline.stop()
 
 
+class SequenceSource(Source):
+    """The frames of an annotated sequence (`data.load_sequence`) at its own frame rate."""
+
+    def __init__(self, path: Path):
+        super().__init__()
+        try:
+            self.sequence = data.load_sequence(path)
+        except DataError as exc:
+            raise SourceError(f'bad sequence: {exc}') from exc
+        self.fps = self.sequence.fps
+        self._samples = None
+        self.rewind()
+
+    def rewind(self) -> None:
+        self.close()
+        self._samples = self.sequence.frames()
+
+    def read(self) -> Frame | None:
+        try:
+            sample = next(self._samples, None)
+        except DataError as exc:
+            raise SourceError(f'bad sequence: {exc}') from exc
+        if sample is None:
+            return None
+        return Frame(sample.image, sample.index / self.fps, sample.index)
+
+    def close(self) -> None:
+        if self._samples is not None:
+            self._samples.close()
+
+
+class VirtualSource(Source):
+    """A recorded scene on the virtual projection screen, as the camera the arm aims sees it.
+
+    Scene frame i is shown at ``i / fps`` (the scene's rate), like ``closed_loop``. Each
+    frame is rendered (``VirtualScreen.render``) with the newest arm pose given to
+    ``set_joints``; before any, the home pose. ``read_scene`` and ``render`` split ``read``
+    so that a caller can render a frame when it is shown rather than when it is read.
+    """
+
+    def __init__(self, scene: Source, screen: VirtualScreen):
+        super().__init__()
+        self.scene = scene
+        self.screen = screen
+        self.skipped = scene.skipped
+        self.fps = scene.fps if scene.fps else DEFAULT_SCENE_FPS
+        self._index = 0
+        self.set_joints(screen.mapping.home_deg)
+
+    def set_joints(self, joints_deg) -> None:
+        """Aim the camera: the arm's six joint angles, degrees."""
+        joints = tuple(float(q) for q in joints_deg)
+        if len(joints) != len(self.screen.mapping.home_deg) or not all(
+                math.isfinite(q) for q in joints):
+            raise SourceError(f'virtual camera: a pose needs six finite joint angles, '
+                              f'got {joints_deg!r}')
+        self.joints_deg = joints
+        self.pan, self.tilt = self.screen.pan_tilt(joints)
+
+    def read_scene(self) -> Frame | None:
+        """The next scene frame (not rendered), stamped with its time on the screen."""
+        frame = self.scene.read()
+        if frame is None:
+            return None
+        self._index += 1
+        return Frame(frame.rgb, (self._index - 1) / self.fps, self._index - 1)
+
+    def render(self, scene: Frame) -> Frame:
+        """What the camera sees of a scene frame from the current pose."""
+        return Frame(self.screen.render(scene.rgb, self.pan, self.tilt), scene.stamp,
+                     scene.index)
+
+    def read(self) -> Frame | None:
+        scene = self.read_scene()
+        return None if scene is None else self.render(scene)
+
+    def rewind(self) -> None:
+        self.scene.rewind()
+        self._index = 0
+
+    def camera_matrix(self) -> np.ndarray:
+        return self.screen.K.copy()
+
+    def close(self) -> None:
+        self.scene.close()
+
+
+def open_scene(scene: str, *, image_topic: str = '', folder_fps: float = 10.0) -> Source:
+    """The recorded source a virtual screen shows: a source spec, a sequence folder or the
+    name of a sequence in the data root."""
+    kind, _, arg = scene.partition(':')
+    if not scene:
+        raise SourceError(f'virtual camera needs a scene: {SCENE_HELP}')
+    if kind in SCENE_KINDS:
+        return open_source(scene, clock=None, image_topic=image_topic, folder_fps=folder_fps)
+    if kind in ('virtual', 'device', 'realsense'):
+        raise SourceError(f'a virtual screen shows a recorded scene, not {scene!r}: '
+                          f'{SCENE_HELP}')
+    path = Path(scene)
+    if (path / data.META_FILE).is_file():
+        return SequenceSource(path)
+    if path.is_dir():
+        raise SourceError(f'{path} is not an annotated sequence (no {data.META_FILE}); a '
+                          f'folder of images is virtual:folder:{path}')
+    if path.exists():
+        raise SourceError(f'{path} is a file, not a scene: {SCENE_HELP}')
+    if len(path.parts) != 1:
+        raise SourceError(f'scene not found: {path}')
+    try:
+        root = data.resolve_data_root()
+    except DataError as exc:
+        raise SourceError(f'cannot look up the sequence {scene!r}: {exc}') from exc
+    if (root / scene / data.META_FILE).is_file():
+        return SequenceSource(root / scene)
+    known = ', '.join(p.name for p in data.find_sequences(root)) or 'none'
+    raise SourceError(f'no sequence {scene!r} in the data root {root} (known: {known})')
+
+
 def default_bag() -> Path:
     """The bundled sample bag."""
     return share_path('bags/vtest')
 
 
 def open_source(spec: str, *, clock, image_topic: str = '', folder_fps: float = 10.0,
-                realsense_size: tuple[int, int] = (640, 480), realsense_fps: int = 30) -> Source:
-    """Open the source a spec string names; raises SourceError with the reason if it cannot."""
+                realsense_size: tuple[int, int] = (640, 480), realsense_fps: int = 30,
+                screen: VirtualScreen | None = None) -> Source:
+    """Open the source a spec string names; raises SourceError with the reason if it cannot.
+
+    :param screen: the screen and arm mapping of ``virtual:`` sources (default: the
+        paper's screen and the default mapping).
+    """
     kind, _, arg = spec.partition(':')
     if kind == 'bag' and arg:
         return BagSource(Path(arg), topic=image_topic)
@@ -249,6 +386,9 @@ def open_source(spec: str, *, clock, image_topic: str = '', folder_fps: float = 
         return VideoSource(Path(arg))
     if kind == 'folder' and arg:
         return FolderSource(Path(arg), fps=folder_fps)
+    if kind == 'virtual':
+        scene = open_scene(arg, image_topic=image_topic, folder_fps=folder_fps)
+        return VirtualSource(scene, screen if screen is not None else VirtualScreen())
     if kind == 'device':
         try:
             return DeviceSource(int(arg or 0), clock=clock)
@@ -258,7 +398,7 @@ def open_source(spec: str, *, clock, image_topic: str = '', folder_fps: float = 
         return RealSenseSource(width=realsense_size[0], height=realsense_size[1],
                                fps=realsense_fps, clock=clock)
     raise SourceError(f'unknown camera source {spec!r}: use bag:PATH, video:PATH, '
-                      'folder:PATH, device:N or realsense')
+                      'folder:PATH, device:N, realsense or virtual:SCENE')
 
 
 class Pacer:
