@@ -5,20 +5,29 @@ whole degrees (``control.SimArm``), the arm the benchmarks use; ``serial`` drive
 ``braccio_serial.ino`` over a serial port (``control.serial_link.BraccioLink``) and publishes
 the state it echoes, surviving a silent, noisy or vanishing port. On Ctrl-C the arm stops
 where it is, or goes home slowly (``stop_mode``), before the node ends.
+
+On a simulated clock (``use_sim_time``, sim back end only) the arm moves with ``/clock``:
+it answers every clock message with its state at that time and every command with its
+state once applied, and publishes nothing on a timer, so a lockstep camera can count the
+answers (``activeloc_ros.lockstep``). Its clock starts at 0, as in ``closed_loop``.
 """
 import math
 import threading
 import time
 
+from builtin_interfaces.msg import Time
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 
 from activeloc_ros.checks import in_range, one_of, positive
 from activeloc_ros.control import clamp_to_limits, pose_problem, JOINT_NAMES, SimArm
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.serial_link import BraccioLink
+from activeloc_ros.errors import ConfigError
 from activeloc_ros.ros_params import declare, Param, run
 
 HOME = [90, 90, 45, 45, 90, 73]
@@ -90,6 +99,10 @@ class ArmNode(Node):
         self._problems_logged = 0
         self._lock = threading.RLock()  # stop_on_purpose may come from another thread
         self._stopped = threading.Event()
+        self.sim_time = self.get_parameter('use_sim_time').value
+        self._tick_ns: int | None = None   # simulated time: the newest /clock, ns
+        if self.sim_time and self.backend != 'sim':
+            raise ConfigError('the serial arm moves in real time: use_sim_time must be false')
 
         if self.backend == 'sim':
             self.sim = SimArm(values['sim_start_deg'], self._now(),
@@ -107,12 +120,24 @@ class ArmNode(Node):
         self.publisher = self.create_publisher(JointState, 'joint_states', 10)
         self.create_subscription(JointState, 'joint_commands', self.on_command,
                                  QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
-        self.create_timer(1.0 / values['state_rate'], self.on_state_timer)
+        # on a simulated clock the timer only serves stopping, which must not wait for time
+        # that stands still between clock ticks
+        self.create_timer(1.0 / values['state_rate'], self.on_state_timer,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME) if self.sim_time
+                          else None)
+        if self.sim_time:
+            self.create_subscription(
+                ClockMsg, '/clock', self.on_clock,
+                QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
         where = values['port'] if self.link else 'simulation'
         self.get_logger().info(f'Braccio arm ({self.backend}: {where}), stop mode '
                                f'{values["stop_mode"]}')
 
     def _now(self) -> float:
+        if self._tick_ns is not None:
+            # the time this node's own /clock callback moved the arm to, which the node
+            # clock may not show yet (its subscription runs separately)
+            return self._tick_ns / 1e9
         return self.get_clock().now().nanoseconds * 1e-9
 
     # -- the arm, whichever back end -------------------------------------------------------
@@ -159,6 +184,17 @@ class ArmNode(Node):
             self.get_logger().warning(f'clamped joint commands outside the limits '
                                       f'({self.clamped} so far)', throttle_duration_sec=5.0)
         self._send(safe)
+        if self.sim_time:
+            self._publish_state(self.joints(), Time(sec=(self._tick_ns or 0) // 10**9,
+                                                    nanosec=(self._tick_ns or 0) % 10**9))
+
+    def on_clock(self, msg: ClockMsg) -> None:
+        """Simulated time: move to the tick and answer it with the state there."""
+        with self._lock:
+            self._tick_ns = max(self._tick_ns or 0,
+                                msg.clock.sec * 10**9 + msg.clock.nanosec)
+            joints = self.joints()
+        self._publish_state(joints, msg.clock)
 
     def on_poll(self) -> None:
         with self._lock:
@@ -181,10 +217,12 @@ class ArmNode(Node):
                 if self.stop_done():
                     self._stopped.set()
             joints = self.joints()
-        if joints is None:
-            return
+        if joints is not None and not self.sim_time:
+            self._publish_state(joints, self.get_clock().now().to_msg())
+
+    def _publish_state(self, joints, stamp) -> None:
         msg = JointState()
-        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.stamp = stamp
         msg.name = list(JOINT_NAMES)
         msg.position = [math.radians(q) for q in joints]
         self.publisher.publish(msg)

@@ -3,7 +3,10 @@
 Subscribes ``action_location`` (PointStamped: pixel x, y and the surprise peak in z; header
 of the source frame), ``camera/camera_info`` and ``joint_states``; publishes
 ``joint_commands`` (JointState, radians, header.stamp copied from the action location so the
-graph can measure frame-to-command latency). The maths is ``activeloc_ros.control``.
+graph can measure frame-to-command latency) and, for each location it does not act on,
+``action_location/ignored`` (the location as received; the log says why), so that every
+location gets an answer a lockstep camera can wait for. The maths is
+``activeloc_ros.control``.
 """
 import math
 import threading
@@ -29,6 +32,16 @@ def _joint_names(value) -> 'str | None':
     return f'unknown joints {bad}; joints are {list(JOINT_NAMES)}' if bad else None
 
 
+# How joints aim the camera; the virtual camera (camera_node) declares the same ones.
+MAPPING_PARAMS = (
+    Param('home_deg', [90, 90, 45, 45, 90, 73], 'Home pose (degrees, camera straight ahead)',
+          pose_problem),
+    Param('pan_joint', 'base', 'Joint that pans the camera', one_of(*JOINT_NAMES)),
+    Param('pan_gain', 1.0, 'Degrees of pan joint per degree of pan (negative flips)'),
+    Param('tilt_joints', ['wrist_ver'], 'Joints that tilt the camera', _joint_names),
+    Param('tilt_gains', [1.0], 'Degrees of each tilt joint per degree of tilt'),
+)
+
 PARAMS = (
     Param('pd_variant', '', 'A PD variant of the paper (Table 3) overriding kp/kd: '
           + ', '.join(f'{k}={v}' for k, v in PD_VARIANTS.items()) + '; empty uses kp/kd',
@@ -47,15 +60,17 @@ PARAMS = (
     Param('min_peak', 0.0, 'Ignore action locations whose surprise peak (z) is below this'),
     Param('step_delay_ms', 20, 'Servo step delay, ms per degree (sets the speed limit)',
           in_range(*STEP_DELAY_MS_RANGE)),
-    Param('home_deg', [90, 90, 45, 45, 90, 73], 'Home pose (degrees, camera straight ahead)',
-          pose_problem),
-    Param('pan_joint', 'base', 'Joint that pans the camera', one_of(*JOINT_NAMES)),
-    Param('pan_gain', 1.0, 'Degrees of pan joint per degree of pan (negative flips)'),
-    Param('tilt_joints', ['wrist_ver'], 'Joints that tilt the camera', _joint_names),
-    Param('tilt_gains', [1.0], 'Degrees of each tilt joint per degree of tilt'),
+    *MAPPING_PARAMS,
     Param('latency_report_period', 10.0, 'Log frame-to-command latency p50/p95 every this '
           'many seconds (0: only at shutdown)', non_negative),
 )
+
+
+def mapping_from(values: dict) -> ArmMapping:
+    """The arm mapping from validated MAPPING_PARAMS values (raises ConfigError)."""
+    return ArmMapping(home_deg=tuple(values['home_deg']), pan_joint=values['pan_joint'],
+                      pan_gain=values['pan_gain'], tilt_joints=tuple(values['tilt_joints']),
+                      tilt_gains=tuple(values['tilt_gains']))
 
 
 def config_from(values: dict) -> ControllerConfig:
@@ -67,10 +82,8 @@ def config_from(values: dict) -> ControllerConfig:
         pd = PDConfig.variant(values['pd_variant'], **pd_options)
     else:
         pd = PDConfig(kp=values['kp'], kd=values['kd'], **pd_options)
-    mapping = ArmMapping(home_deg=tuple(values['home_deg']), pan_joint=values['pan_joint'],
-                         pan_gain=values['pan_gain'], tilt_joints=tuple(values['tilt_joints']),
-                         tilt_gains=tuple(values['tilt_gains']))
-    return ControllerConfig(pd=pd, mapping=mapping, watchdog_timeout=values['watchdog_timeout'],
+    return ControllerConfig(pd=pd, mapping=mapping_from(values),
+                            watchdog_timeout=values['watchdog_timeout'],
                             step_delay_ms=values['step_delay_ms'], min_peak=values['min_peak'])
 
 
@@ -84,21 +97,27 @@ class ControllerNode(Node):
         super().__init__('controller', **kwargs)
         values = declare(self, PARAMS)
         self.config = config_from(values)
+        # on a simulated clock (lockstep) this is 0, as in closed_loop
         self.core = ReactiveController(self.config, t0=self._now())
+        self.sim_time = self.get_parameter('use_sim_time').value
         self._state = self.core.state
         self._ignored_logged = 0
         self._info_key = None
         self._lock = threading.Lock()  # stop_on_purpose may come from another thread
         self.stopped = False
 
+        # Best effort hears any publisher (a camera driver's sensor QoS); in simulated time
+        # (lockstep, our own reliable publishers) every location and arm state counts.
+        inputs = ReliabilityPolicy.RELIABLE if self.sim_time else ReliabilityPolicy.BEST_EFFORT
         sensor = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
         commands = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
         self.publisher = self.create_publisher(JointState, 'joint_commands', commands)
-        self.create_subscription(PointStamped, 'action_location', self.on_location, sensor)
+        self.ignored_pub = self.create_publisher(PointStamped, 'action_location/ignored', 10)
+        self.create_subscription(PointStamped, 'action_location', self.on_location,
+                                 QoSProfile(depth=1, reliability=inputs))
         self.create_subscription(CameraInfo, 'camera/camera_info', self.on_camera_info, sensor)
-        self.create_subscription(
-            JointState, 'joint_states', self.on_joint_states,
-            QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+        self.create_subscription(JointState, 'joint_states', self.on_joint_states,
+                                 QoSProfile(depth=10, reliability=inputs))
         self.create_timer(0.05, self.on_watchdog)
         if values['latency_report_period'] > 0:
             self.create_timer(values['latency_report_period'], self.report_latency)
@@ -152,10 +171,16 @@ class ControllerNode(Node):
                 return
             now = self._now()
             t_capture = _seconds(msg.header.stamp) or now
+            if self.sim_time:
+                # the frame's clock tick may reach this node after its location; in
+                # simulated time a command is never made before its frame (closed_loop)
+                now = max(now, t_capture)
             command = self.core.on_location(msg.point.x, msg.point.y, t_capture, now,
                                             peak=msg.point.z)
             if command is not None:
                 self._publish(command.joints_deg, msg.header.stamp)
+            else:
+                self.ignored_pub.publish(msg)
         self._log_state()
         self._log_ignored()
 
