@@ -1,23 +1,67 @@
 """Camera node: publishes `camera/image_raw` and `camera/camera_info` from a chosen source.
 
     ros2 run activeloc_ros camera_node --ros-args -p source:=bag:bags/vtest -p loop:=true
+
+A `virtual:SCENE` source is the projected-screen experiment in software: the scene on a
+virtual screen (`screen.VirtualScreen`), seen by a camera the arm aims. The node then
+subscribes `joint_states` (the arm's pose aims the camera) and publishes `camera/pose`
+(sensor_msgs/JointState named pan, tilt: radians, stamped like the image it rendered).
+With `lockstep` (and `use_sim_time` on every node) the node owns a simulated `/clock` and
+steps the graph frame by frame as `closed_loop` does (`activeloc_ros.lockstep`).
 """
+import math
 import time
 
 from builtin_interfaces.msg import Time
+from geometry_msgs.msg import PointStamped
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, Image
+from rosgraph_msgs.msg import Clock as ClockMsg
+from sensor_msgs.msg import CameraInfo, Image, JointState
 
 from activeloc_ros.checks import non_negative, one_of, positive
-from activeloc_ros.errors import SourceError
+from activeloc_ros.control import JOINT_NAMES
+from activeloc_ros.controller_node import MAPPING_PARAMS, mapping_from
+from activeloc_ros.errors import ConfigError, SourceError
 from activeloc_ros.images import rgb_to_image_fields
+from activeloc_ros.lockstep import IDLE, Lockstep
 from activeloc_ros.ros_params import declare, Param, run
+from activeloc_ros.screen import ScreenConfig, VirtualScreen
 from activeloc_ros.sources import default_bag, open_source, Pacer, pinhole_matrix
+
+# camera parameter -> ScreenConfig field
+SCREEN_FIELDS = {'screen_width_m': 'screen_width_m', 'screen_height_m': 'screen_height_m',
+                 'view_fraction': 'view_fraction', 'distance_m': 'distance_m',
+                 'virtual_width': 'width', 'virtual_height': 'height',
+                 'virtual_hfov_deg': 'hfov_deg'}
+SCREEN_HELP = {
+    'screen_width_m': 'virtual screen width, m (paper: 2.214)',
+    'screen_height_m': 'virtual screen height, m (paper: 1.245)',
+    'view_fraction': "share of the screen's area the virtual camera sees at home (paper: 0.3)",
+    'distance_m': 'virtual camera to screen, m (0: set by view_fraction)',
+    'virtual_width': 'virtual camera image width, pixels',
+    'virtual_height': 'virtual camera image height, pixels',
+    'virtual_hfov_deg': 'virtual camera horizontal field of view, degrees',
+}
+
+
+def _screen_check(field: str):
+    """ScreenConfig's own check of one field, as a pure parameter check."""
+    def check(value):
+        try:
+            ScreenConfig(**{field: value})
+        except (ConfigError, TypeError) as exc:
+            return str(exc)
+        return None
+    return check
+
 
 PARAMS = [
     Param('source', f'bag:{default_bag()}',
-          'bag:PATH | video:PATH | folder:PATH | device:N | realsense', read_only=True),
+          'bag:PATH | video:PATH | folder:PATH | device:N | realsense | virtual:SCENE '
+          '(SCENE: bag:PATH, video:PATH, folder:PATH, a sequence folder or name)',
+          read_only=True),
     Param('image_topic', '', 'image topic to replay from a bag (empty: the first one)',
           read_only=True),
     Param('rate', 1.0, 'replay speed of recorded sources (1.0 = recorded timing)', positive),
@@ -34,9 +78,27 @@ PARAMS = [
     Param('realsense_fps', 30, 'RealSense colour frame rate', positive),
     Param('max_frames', 0, 'stop after this many frames (0: no limit)', non_negative),
     Param('wait_for_subscriber', 120.0, 'recorded sources: seconds to wait for a subscriber '
-          'before the first frame, so a model still loading misses nothing (0: do not wait)',
-          non_negative),
+          '(lockstep: for the whole graph) before the first frame, so a model still loading '
+          'misses nothing (0: do not wait)', non_negative),
+    Param('lockstep', False, 'virtual sources: step the graph frame by frame on a simulated '
+          '/clock this node publishes, as closed_loop does (needs use_sim_time on every '
+          'node)', read_only=True),
+    Param('lockstep_timeout', 60.0, "lockstep: longest wait for the arm's pose and for "
+          'perception, s', positive),
+    Param('lockstep_command_timeout', 2.0, "lockstep: longest wait for the controller's "
+          "answer to an action location and for the arm's confirmation, s", positive),
+    *(Param(name, getattr(ScreenConfig, field), SCREEN_HELP[name], _screen_check(field),
+            read_only=True) for name, field in SCREEN_FIELDS.items()),
+    *MAPPING_PARAMS,
 ]
+
+
+def _ns(stamp) -> int:
+    return stamp.sec * 10**9 + stamp.nanosec
+
+
+def _time(ns: int) -> Time:
+    return Time(sec=ns // 10**9, nanosec=ns % 10**9)
 
 
 class CameraNode(Node):
@@ -44,13 +106,40 @@ class CameraNode(Node):
         super().__init__('camera', **kwargs)
         self.params = declare(self, PARAMS)
         p = self.params
+        self.virtual = p['source'].startswith('virtual:')
+        screen = None
+        if self.virtual:
+            screen = VirtualScreen(ScreenConfig(**{field: p[name] for name, field
+                                                   in SCREEN_FIELDS.items()}),
+                                   mapping=mapping_from(p))
+        if p['lockstep'] and not self.virtual:
+            raise ConfigError("parameter 'lockstep' needs a virtual:SCENE source")
+        if p['lockstep'] and not self.get_parameter('use_sim_time').value:
+            raise ConfigError("parameter 'lockstep' runs the graph on simulated time: set "
+                              'use_sim_time:=true on every node')
         self.source = open_source(
             p['source'], clock=self._now_s, image_topic=p['image_topic'],
             folder_fps=p['folder_fps'], realsense_fps=p['realsense_fps'],
-            realsense_size=(p['realsense_width'], p['realsense_height']))
+            realsense_size=(p['realsense_width'], p['realsense_height']), screen=screen)
         qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.image_pub = self.create_publisher(Image, 'camera/image_raw', qos)
         self.info_pub = self.create_publisher(CameraInfo, 'camera/camera_info', 10)
+        self.lockstep = None
+        if self.virtual:
+            self.pose_pub = self.create_publisher(JointState, 'camera/pose', reliable)
+            self.state_sub = self.create_subscription(JointState, 'joint_states',
+                                                      self.on_joint_states, reliable)
+        if p['lockstep']:
+            self.lockstep = Lockstep(self.source.fps, timeout=p['lockstep_timeout'],
+                                     command_timeout=p['lockstep_command_timeout'])
+            self.clock_pub = self.create_publisher(ClockMsg, '/clock', reliable)
+            self.location_sub = self.create_subscription(
+                PointStamped, 'action_location', self.on_location, reliable)
+            self.command_sub = self.create_subscription(
+                JointState, 'joint_commands', self.on_command, reliable)
+            self.create_subscription(PointStamped, 'action_location/ignored', self.on_ignored,
+                                     reliable)
         self.pacer = Pacer(p['rate'])
         self.pending = None
         self.published = 0
@@ -58,14 +147,47 @@ class CameraNode(Node):
         self.finished = False
         self.started_at = time.monotonic()
         self.waiting = not self.source.live and p['wait_for_subscriber'] > 0
-        self.timer = self.create_timer(0.005, self.tick)
-        self.get_logger().info(f'streaming {p["source"]}')
+        # a steady timer: in lockstep the simulated clock stands still until this node moves it
+        self.timer = self.create_timer(0.005, self.tick,
+                                       clock=Clock(clock_type=ClockType.STEADY_TIME))
+        mode = (f'lockstep, {self.source.fps:g} frames per simulated second'
+                if p['lockstep'] else 'real time')
+        self.get_logger().info(f'streaming {p["source"]} ({mode})'
+                               + (f'; {screen.describe()}' if screen else ''))
 
     def _now_s(self) -> float:
         return self.get_clock().now().nanoseconds / 1e9
 
+    # -- inputs of a virtual camera --------------------------------------------------------
+
+    def on_joint_states(self, msg: JointState) -> None:
+        index = {name: i for i, name in enumerate(msg.name)}
+        if len(msg.position) != len(msg.name) or any(n not in index for n in JOINT_NAMES):
+            return
+        joints = [math.degrees(msg.position[index[n]]) for n in JOINT_NAMES]
+        if not all(math.isfinite(q) for q in joints):
+            return
+        if self.lockstep is not None:
+            self.lockstep.on_state(_ns(msg.header.stamp), joints)
+        else:
+            self.source.set_joints(joints)
+
+    def on_location(self, msg: PointStamped) -> None:
+        self.lockstep.on_location(_ns(msg.header.stamp), time.monotonic())
+
+    def on_command(self, msg: JointState) -> None:
+        self.lockstep.on_command(_ns(msg.header.stamp))
+
+    def on_ignored(self, msg: PointStamped) -> None:
+        self.lockstep.on_ignored(_ns(msg.header.stamp))
+
+    # -- frames ----------------------------------------------------------------------------
+
     def tick(self) -> None:
         if self.finished or (self.waiting and not self._subscriber_ready()):
+            return
+        if self.lockstep is not None:
+            self._lockstep_tick()
             return
         if self.pending is None:
             self.pending = self._next_frame()
@@ -80,8 +202,45 @@ class CameraNode(Node):
         if self.params['max_frames'] and self.published >= self.params['max_frames']:
             self._finish('max_frames reached')
 
+    def _lockstep_tick(self) -> None:
+        step, now = self.lockstep, time.monotonic()
+        if step.phase == IDLE:
+            self.pending = self._next_frame()
+            if self.pending is None:
+                self._finish('end of stream')
+                return
+            self._publish_clock(step.begin(now))
+            return
+        action = step.poll(now)
+        if action == 'tick':
+            self._publish_clock(step.t_ns)
+        elif action == 'render':
+            if step.pose is not None:
+                self.source.set_joints(step.pose)
+            self.publish(self.pending, stamp=_time(step.t_ns))
+            self.pending = None
+            step.rendered(now)
+        elif action == 'next':
+            for problem in set(step.missed) - self.logged_problems:
+                self.get_logger().warning(f'lockstep: {problem} (frame {step.index})')
+                self.logged_problems.add(problem)
+            if self.params['max_frames'] and self.published >= self.params['max_frames']:
+                self._finish('max_frames reached')
+
+    def _publish_clock(self, t_ns: int) -> None:
+        self.clock_pub.publish(ClockMsg(clock=_time(t_ns)))
+
+    def _graph_ready(self) -> bool:
+        """Lockstep needs perception, the controller and the arm before the first tick."""
+        return (self.image_pub.get_subscription_count() > 0
+                and self.state_sub.get_publisher_count() > 0
+                and self.command_sub.get_publisher_count() > 0
+                and self.location_sub.get_publisher_count() > 0)
+
     def _subscriber_ready(self) -> bool:
-        if self.image_pub.get_subscription_count() > 0:
+        if self.lockstep is not None and self._graph_ready():
+            self.get_logger().info('perception, controller and arm are up: lockstep starts')
+        elif self.lockstep is None and self.image_pub.get_subscription_count() > 0:
             self.get_logger().info('a subscriber is listening: replay starts')
         elif time.monotonic() - self.started_at > self.params['wait_for_subscriber']:
             self.get_logger().warning('no subscriber after '
@@ -92,11 +251,13 @@ class CameraNode(Node):
         return True
 
     def _next_frame(self):
+        # a virtual camera renders a frame when it publishes it, with the pose of that moment
+        read = self.source.read_scene if self.virtual else self.source.read
         try:
-            frame = self.source.read()
+            frame = read()
             if frame is None and self.params['loop']:
                 self.source.rewind()
-                frame = self.source.read()
+                frame = read()
         except SourceError as exc:
             self.get_logger().error(str(exc))
             return None
@@ -105,17 +266,22 @@ class CameraNode(Node):
             self.logged_problems.add(problem)
         return frame
 
-    def publish(self, frame) -> None:
+    def publish(self, frame, *, stamp: Time | None = None) -> None:
+        if self.virtual:
+            frame = self.source.render(frame)
         height, width = frame.rgb.shape[:2]
-        if self.params['restamp']:
+        if stamp is None and self.params['restamp']:
             stamp = self.get_clock().now().to_msg()
-        else:
+        elif stamp is None:
             stamp = Time(sec=int(frame.stamp), nanosec=int(round(frame.stamp % 1 * 1e9)) % 10**9)
         image = Image(**rgb_to_image_fields(frame.rgb, self.params['encoding']))
         image.header.stamp = stamp
         image.header.frame_id = self.params['frame_id']
         self.image_pub.publish(image)
         self.info_pub.publish(self.camera_info(width, height, image.header))
+        if self.virtual:
+            self.pose_pub.publish(JointState(header=image.header, name=['pan', 'tilt'],
+                                             position=[self.source.pan, self.source.tilt]))
         self.published += 1
         if self.published == 1:
             self.get_logger().info(f'first frame published ({width}x{height})')
@@ -137,6 +303,9 @@ class CameraNode(Node):
         self.finished = True
         self.timer.cancel()
         self.get_logger().info(f'{why}: {self.published} frames published')
+        if self.lockstep is not None and self.lockstep.missed:
+            self.get_logger().warning('lockstep timeouts: ' + ', '.join(
+                f'{kind}: {n}' for kind, n in sorted(self.lockstep.missed.items())))
 
     def destroy_node(self):
         self.source.close()
