@@ -1,13 +1,19 @@
 """Start the whole graph (camera, perception, controller, arm) from one script.
 
-    python -m activeloc_ros.bringup                      # bundled bag, simulated arm
+    python -m activeloc_ros.bringup                      # bundled bag on the virtual screen
+    python -m activeloc_ros.bringup --mode lockstep --camera virtual:otb_crossing
     python -m activeloc_ros.bringup --camera device:0 --duration 60
     python -m activeloc_ros.bringup --record out/run1    # every topic to an MCAP bag
 
 Each node runs in its own process (as a launch file would) with its `params/<node>.yaml`,
 or all in one executor with --in-process. A status line shows frames/s, frame-to-command
-latency and the action location; Ctrl-C stops the nodes in order (the arm last, holding
-still) and a summary closes the run. Exits non-zero if a node fails or nothing was seen.
+latency (lockstep: the simulated time) and the action location; Ctrl-C stops the nodes in
+order (the arm last, holding still) and a summary closes the run. Exits non-zero if a node
+fails or nothing was seen.
+
+--mode lockstep (virtual camera, simulated arm) runs every node on simulated time that the
+camera steps frame by frame, as `closed_loop` does; `camera/pose` then holds, at each
+image's stamp, the pan and tilt the camera rendered with (`lockstep.recorded_poses`).
 """
 import argparse
 import os
@@ -25,6 +31,7 @@ from activeloc_ros.errors import ActivelocError, ConfigError, SourceError
 from activeloc_ros.paths import share_path
 from activeloc_ros.sources import default_bag
 
+MODES = ('realtime', 'lockstep')
 NODES = ('camera', 'perception', 'controller', 'arm')   # start and stop order: the arm last
 STARTUP_DEADLINE_S = 180.0    # model and weights load before the first map
 DRAIN_QUIET_S = 2.0           # after the camera ends: stop once no map came for this long
@@ -34,9 +41,16 @@ STOP_DEADLINE_S = 10.0
 def parse_args(argv):
     parser = argparse.ArgumentParser(prog='python -m activeloc_ros.bringup', description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument('--camera', default=f'bag:{default_bag()}',
+    parser.add_argument('--camera', default=f'virtual:bag:{default_bag()}',
                         help='camera source: bag:PATH, video:PATH, folder:PATH, device:N, '
-                             'realsense (default: the bundled sample bag)')
+                             'realsense or virtual:SCENE, the scene (bag:PATH, video:PATH, '
+                             'folder:PATH, a sequence folder or name) on the virtual screen '
+                             'the arm aims at (default: the bundled sample bag, virtual)')
+    parser.add_argument('--mode', choices=MODES, default='realtime',
+                        help="'realtime': every node on the wall clock, perception takes the "
+                             "newest frame; 'lockstep': simulated time stepped frame by frame "
+                             'by the (virtual) camera, every frame processed, as the screen '
+                             'benchmark does (default: realtime)')
     parser.add_argument('--arm', default='sim',
                         help="arm back end: 'sim' or 'serial:PORT' (default: sim)")
     parser.add_argument('--params', type=Path, action='append', default=[],
@@ -59,9 +73,12 @@ def node_arguments(node: str, args) -> list[str]:
     ros_args = ['--ros-args', '--params-file', str(share_path(f'params/{node}.yaml'))]
     for extra in args.params:
         ros_args += ['--params-file', str(extra)]
+    if args.mode == 'lockstep':
+        ros_args += ['-p', 'use_sim_time:=true']
     if node == 'camera':
         ros_args += ['-p', f'source:={args.camera}', '-p', f'rate:={args.rate}',
-                     '-p', f'loop:={str(args.loop).lower()}']
+                     '-p', f'loop:={str(args.loop).lower()}',
+                     '-p', f'lockstep:={str(args.mode == "lockstep").lower()}']
     if node == 'arm':
         backend, _, port = args.arm.partition(':')
         ros_args += ['-p', f'backend:={backend}']
@@ -76,17 +93,22 @@ def preflight(args) -> None:
     if kind == 'bag':
         from activeloc_ros import bag
         bag.choose_image_topic(bag.bag_facts(Path(target)))
-    elif kind in ('video', 'folder'):
+    elif kind in ('video', 'folder', 'virtual'):
         from activeloc_ros.sources import open_source
         source = open_source(args.camera, clock=time.time)
-        if source.read() is None:
-            raise SourceError(f'{args.camera} holds no readable frame')
-        source.close()
-    elif kind not in ('device', 'realsense', 'virtual'):
+        try:
+            if source.read() is None:
+                raise SourceError(f'{args.camera} holds no readable frame')
+        finally:
+            source.close()
+    elif kind not in ('device', 'realsense'):
         raise ConfigError(f'unknown --camera {args.camera!r}')
     backend = args.arm.partition(':')[0]
     if backend not in ('sim', 'serial'):
         raise ConfigError(f"unknown --arm {args.arm!r}: use 'sim' or 'serial:PORT'")
+    if args.mode == 'lockstep' and (kind != 'virtual' or backend != 'sim'):
+        raise ConfigError('--mode lockstep steps a simulation: it needs --camera virtual:SCENE '
+                          'and --arm sim')
     files = [share_path(f'params/{node}.yaml') for node in NODES] + list(args.params)
     for file in files:
         check_params_file(Path(file))
@@ -110,9 +132,13 @@ def check_params_file(path: Path) -> None:
 
 
 class Monitor:
-    """Watches the graph's topics from its own node: rates, latency, location, arm pose."""
+    """Watches the graph's topics from its own node: rates, latency, location, arm pose.
 
-    def __init__(self, context):
+    In lockstep the graph's stamps are simulated time, in which a command takes no time:
+    the monitor shows how far the simulated clock got instead of a latency.
+    """
+
+    def __init__(self, context, *, lockstep: bool = False):
         from geometry_msgs.msg import PointStamped
         from rclpy.node import Node
         from sensor_msgs.msg import CameraInfo, JointState
@@ -123,6 +149,8 @@ class Monitor:
         self.latencies: list[float] = []
         self.location = None
         self.image_size = None
+        self.lockstep = lockstep
+        self.sim_time = 0.0            # lockstep: the newest frame's simulated time, s
         self.joints: dict[str, float] = {}
         sub = self.node.create_subscription
         sub(CameraInfo, 'camera/camera_info', self.on_info, 10)
@@ -137,6 +165,8 @@ class Monitor:
 
     def on_info(self, msg):
         self.image_size = (msg.width, msg.height)
+        stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        self.sim_time = max(self.sim_time, stamp)
         self._stamp(self.frames)
 
     def on_location(self, msg):
@@ -144,7 +174,7 @@ class Monitor:
 
     def on_command(self, msg):
         sent = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-        if sent > 0:
+        if sent > 0 and not self.lockstep:
             now = self.node.get_clock().now().nanoseconds * 1e-9
             with self.lock:
                 self.latencies.append(now - sent)
@@ -173,9 +203,11 @@ class Monitor:
                  else '(none yet)')
         joints = ' '.join(f'{name} {deg:.0f}°' for name, deg in self.joints.items()
                           if name in ('base', 'shoulder', 'elbow', 'wrist_ver'))
+        timing = (f'simulated {self.sim_time:6.1f} s' if self.lockstep
+                  else f'frame->command p50 {p50:4.0f} ms p95 {p95:4.0f} ms')
         return (f'[{elapsed:6.1f}s] camera {self.rate(self.frames):4.1f} fps | '
-                f'maps {self.rate(self.maps):4.1f} fps | frame->command p50 {p50:4.0f} ms '
-                f'p95 {p95:4.0f} ms | action {where} | {joints or "arm: no state yet"}')
+                f'maps {self.rate(self.maps):4.1f} fps | {timing} | action {where} | '
+                f'{joints or "arm: no state yet"}')
 
 
 class Child:
@@ -267,7 +299,7 @@ def run(args) -> int:
     context = rclpy.Context()
     rclpy.init(context=context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     from rclpy.executors import SingleThreadedExecutor
-    monitor = Monitor(context)
+    monitor = Monitor(context, lockstep=args.mode == 'lockstep')
     watch = SingleThreadedExecutor(context=context)
     watch.add_node(monitor.node)
     recorder = None
@@ -296,7 +328,7 @@ def run(args) -> int:
             env = dict(os.environ, PYTHONUNBUFFERED='1')
             children = [Child(node, args, log_dir, env) for node in NODES]
         print(f'bringup: {" -> ".join(NODES)}; camera {args.camera}; arm {args.arm}; '
-              f'logs in {log_dir}', flush=True)
+              f'{args.mode}; logs in {log_dir}', flush=True)
         camera_done_at = None
         while True:
             time.sleep(0.2)
@@ -362,7 +394,9 @@ def summary(monitor: Monitor, elapsed: float, reason: str, codes: dict, recorder
     lines = [f'summary: stopped after {elapsed:.1f} s ({reason})',
              f'  frames published {len(monitor.frames)}, surprise maps {len(monitor.maps)} '
              f'({map_rate:.1f} maps/s), joint commands {len(monitor.commands)}',
-             f'  frame->command latency {percentile_text(monitor)}']
+             (f'  simulated time {monitor.sim_time:.2f} s (lockstep: every frame processed, '
+              'commands at their frame time)' if monitor.lockstep
+              else f'  frame->command latency {percentile_text(monitor)}')]
     if monitor.location:
         lines.append(f'  last action location ({monitor.location[0]:.0f}, '
                      f'{monitor.location[1]:.0f}) in a {monitor.image_size} image')
