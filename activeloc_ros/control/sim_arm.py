@@ -27,7 +27,8 @@ class SimArm:
         self.joints: tuple[int, ...] = quantize(start_deg)
         self.target: tuple[int, ...] = self.joints
         self.t = float(t0)
-        self._next_step = self.t + self.step
+        self._t0 = self.t
+        self._steps = 0           # steps taken; step k happens at t0 + k * step
 
     @property
     def moving(self) -> bool:
@@ -39,13 +40,19 @@ class SimArm:
         self.target = quantize(target_deg)
 
     def advance(self, t: float) -> tuple[int, ...]:
-        """Move the joints up to time ``t`` (earlier or non-finite times change nothing)."""
-        if not math.isfinite(t) or t < self._next_step:
-            self.t = max(self.t, t) if math.isfinite(t) else self.t
+        """Move the joints up to time ``t`` (earlier or non-finite times change nothing).
+
+        Steps are counted from the start time, not accumulated, so asking twice for the
+        same time never moves the arm twice (float sums would drift across a step).
+        """
+        if not math.isfinite(t):
             return self.joints
-        n = int((t - self._next_step) // self.step) + 1
-        self._next_step += n * self.step
-        self.t = t
+        due = math.floor((t - self._t0) / self.step + 1e-9)
+        n = due - self._steps
+        self.t = max(self.t, t)
+        if n <= 0:
+            return self.joints
+        self._steps = due
         self.joints = tuple(
             q + max(-n, min(n, goal - q)) for q, goal in zip(self.joints, self.target))
         return self.joints
