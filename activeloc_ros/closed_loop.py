@@ -5,10 +5,12 @@ a pointer (the perception model, a tracker, a baseline) -> ``ReactiveController`
 ``SimArm`` -> the next render. The same core objects the ROS nodes run.
 
 Time: scene frame i is shown at ``t_i = i / fps`` (the scene's own rate) and the arm moves
-at its servos' speed. Two modes:
+at its servos' speed. The camera captures at ``camera_fps`` (default: every scene frame);
+a capture sees the scene frame on the screen at that moment. Two modes:
 
-- ``lockstep``: every frame is processed and its command reaches the arm at ``t_i`` (zero
-  compute time); deterministic. The ROS graph reproduces it with a simulated clock.
+- ``lockstep``: every captured frame is processed and its command reaches the arm at its
+  capture time (zero compute time); deterministic. The ROS graph reproduces it with a
+  simulated clock.
 - ``realtime``: processing a frame takes the pointer's measured wall time; frames that
   arrive while it is busy wait in a one-deep queue where the newest wins (the perception
   node's image queue), and each command reaches the arm when its computation ends.
@@ -129,19 +131,25 @@ def _centre(box) -> tuple[float, float]:
 
 def run_episode(frames: Iterable[tuple[int, np.ndarray, FrameTruth]], pointer: Pointer, *,
                 fps: float, screen: VirtualScreen, controller: ControllerConfig,
-                mode: str = 'lockstep', name: str = '',
-                on_frame: Callable[[np.ndarray, FrameRecord, np.ndarray], None]
+                mode: str = 'lockstep', camera_fps: float | None = None, name: str = '',
+                on_frame: Callable[[np.ndarray, FrameRecord, np.ndarray | None], None]
                 | None = None) -> Episode:
     """Run one sequence through the closed loop.
 
     :param frames: (index, scene RGB, truth) in order.
-    :param on_frame: called with each scene frame, its record and the camera image, e.g. to
-        write a video.
+    :param camera_fps: the camera's frame rate; None or a rate above the scene's captures
+        every scene frame.
+    :param on_frame: called with each scene frame, its record and the camera image (None
+        when the camera captured nothing at that frame), e.g. to write a video.
     """
     if mode not in MODES:
         raise ConfigError(f'mode must be one of {list(MODES)}, got {mode!r}')
     if not (math.isfinite(fps) and fps > 0):
         raise ConfigError(f'fps must be > 0, got {fps}')
+    if camera_fps is not None and not (math.isfinite(camera_fps) and camera_fps > 0):
+        raise ConfigError(f'camera_fps must be > 0, got {camera_fps}')
+    period = 0.0 if camera_fps is None or camera_fps >= fps else 1.0 / camera_fps
+    captures = 0
     episode = Episode(name, pointer.name, mode)
     pointer.reset()
     home = controller.mapping.home_deg
@@ -192,17 +200,20 @@ def run_episode(frames: Iterable[tuple[int, np.ndarray, FrameTruth]], pointer: P
         ctl.observe_joints(joints, t)
         pan, tilt = screen.pan_tilt(joints)
         points = np.array([_centre(b) for b in truth.actors], np.float64).reshape(-1, 2)
-        rgb = screen.render(scene, pan, tilt)   # a dropped frame may still wait in the queue
-        view = View(rgb, index, t, pan, tilt, screen.project(points, pan, tilt, scene_wh),
+        processed = False
+        rgb = None
+        if t + 1e-9 >= captures * period:
+            captures += 1
+            rgb = screen.render(scene, pan, tilt)  # a dropped frame may still wait in the queue
+        view = None if rgb is None else View(rgb, index, t, pan, tilt, screen.project(points, pan, tilt, scene_wh),
                     (screen.project([_centre(truth.primary)], pan, tilt, scene_wh)[0]
                      if truth.primary else None),
                     screen.project([((scene_wh[0] - 1) / 2, (scene_wh[1] - 1) / 2)],
                                    pan, tilt, scene_wh)[0])
-        processed = False
-        if mode == 'lockstep' or busy_until <= t:
+        if view is not None and (mode == 'lockstep' or busy_until <= t):
             busy_until = process(view, scene_wh, t)
             processed = True
-        else:
+        elif view is not None:
             queued = (view, scene_wh)
         # the newest result available at t
         while results and results[0][0] <= t:

@@ -124,10 +124,11 @@ def make_walker(root: Path, name: str = 'walker', n: int = 40, *, fps: float = 1
     return path
 
 
-def episode(seq: data.Sequence, pointer, mode: str = 'lockstep'):
+def episode(seq: data.Sequence, pointer, mode: str = 'lockstep', **options):
     return run_episode(((s.index, s.image, s.truth) for s in seq.frames()), pointer,
                        fps=seq.fps, screen=VirtualScreen(ScreenConfig(width=320, height=240)),
-                       controller=ControllerConfig(settle_time=0.0), mode=mode, name=seq.name)
+                       controller=ControllerConfig(settle_time=0.0), mode=mode, name=seq.name,
+                       **options)
 
 
 def test_oracle_follows_the_walker_and_centre_loses_it(tmp_path):
@@ -168,6 +169,15 @@ def test_realtime_drops_frames_a_slow_pointer_cannot_take(tmp_path):
     # a frame every 50 ms, 120+ ms each: at most every second frame goes through
     assert real.summary()['processed'] <= 21
     assert real.summary()['aae_deg'] > lock.summary()['aae_deg']
+
+
+def test_a_slower_camera_takes_fewer_pictures_but_every_frame_is_scored(tmp_path):
+    seq = data.load_sequence(make_walker(tmp_path, fps=30.0, n=30))
+    images = []
+    run = episode(seq, OraclePointer(), camera_fps=10.0,
+                  on_frame=lambda scene, record, camera: images.append(camera is not None))
+    assert images == [True, False, False] * 10
+    assert run.summary()['processed'] == 10 and run.summary()['scored'] == 30
 
 
 def test_bad_mode_is_refused(tmp_path):

@@ -120,7 +120,8 @@ def run_job(job: dict) -> dict:
         try:
             episode = run_episode(frames, pointer, fps=seq.fps, screen=screen,
                                   controller=controller_for(job['method'], job['control']),
-                                  mode=job['mode'], name=seq.name,
+                                  mode=job['mode'], camera_fps=job['camera_fps'] or None,
+                                  name=seq.name,
                                   on_frame=video.add if video else None)
         except BaseException:
             if video:
@@ -160,8 +161,9 @@ class OverlayVideo:
         self.max_width = max_width
         self.tmp = path.with_name(f'.{path.stem}.tmp{path.suffix}')
         self.writer = None
+        self.inset = None
 
-    def add(self, scene: np.ndarray, record: FrameRecord, camera: np.ndarray) -> None:
+    def add(self, scene: np.ndarray, record: FrameRecord, camera: np.ndarray | None) -> None:
         h, w = scene.shape[:2]
         scale = min(1.0, self.max_width / w)
         size = (int(round(w * scale)) // 2 * 2, int(round(h * scale)) // 2 * 2)
@@ -185,10 +187,12 @@ class OverlayVideo:
             x, y = record.predicted_xy
             cv2.drawMarker(frame, (int((x + 0.5) * sx), int((y + 0.5) * sy)), (0, 0, 255),
                            cv2.MARKER_CROSS, 16, 2)
-        inset_w = size[0] // 4
-        inset = cv2.resize(cv2.cvtColor(camera, cv2.COLOR_RGB2BGR),
-                           (inset_w, inset_w * camera.shape[0] // camera.shape[1]))
-        frame[-inset.shape[0]:, -inset_w:] = inset
+        if camera is not None:   # else the camera took no picture: keep the last one
+            inset_w = size[0] // 4
+            self.inset = cv2.resize(cv2.cvtColor(camera, cv2.COLOR_RGB2BGR),
+                                    (inset_w, inset_w * camera.shape[0] // camera.shape[1]))
+        if self.inset is not None:
+            frame[-self.inset.shape[0]:, -self.inset.shape[1]:] = self.inset
         aae = '' if math.isnan(record.aae_deg) else f'  AAE {record.aae_deg:5.1f} deg'
         cv2.putText(frame, f'{self.label}  frame {record.index}{aae}', (6, 18),
                     cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
@@ -208,7 +212,8 @@ class OverlayVideo:
 # -- the whole benchmark ---------------------------------------------------------------------
 
 def evaluate(sequences: list[data.Sequence], methods: list[str], *, mode: str,
-             screen: dict, settings: dict, control: dict, seed: int, jobs: int,
+             camera_fps: float, screen: dict, settings: dict, control: dict, seed: int,
+             jobs: int,
              max_frames: int | None, video_dir: Path | None, quiet: bool) -> dict:
     """Run every method on every sequence (in `jobs` worker processes)."""
     threads = max(1, (os.cpu_count() or 1) // jobs)
@@ -217,7 +222,7 @@ def evaluate(sequences: list[data.Sequence], methods: list[str], *, mode: str,
         for method in methods:
             video = str(video_dir / seq.name / f'{method}.mp4') if video_dir else ''
             work.append({'path': str(seq.path), 'method': method, 'settings': settings,
-                         'seed': seed, 'mode': mode, 'screen': screen, 'control': control,
+                         'seed': seed, 'mode': mode, 'camera_fps': camera_fps, 'screen': screen, 'control': control,
                          'max_frames': max_frames, 'video': video, 'threads': threads})
     # the model methods first (the slow ones), so the fast ones fill the gaps at the end
     work.sort(key=lambda j: (j['method'] not in MODEL_METHODS, j['method'] == 'ours-resnet50'))
@@ -378,6 +383,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--mode', choices=MODES, default='lockstep',
                    help='lockstep: every frame processed, deterministic (default); realtime: '
                         'frames the method is too slow for are dropped')
+    p.add_argument('--camera-fps', type=float, default=10.0, metavar='HZ',
+                   help='frame rate of the virtual camera (default 10, the bundled bag\'s; '
+                        '0: one picture per scene frame); the scene plays at its own rate')
     p.add_argument('--max-frames', type=int, metavar='N', help='first N frames of each')
     p.add_argument('--set', nargs='+', metavar='KEY=VALUE', default=[],
                    help='PerceptionConfig fields for every model method, e.g. lr=1e-4')
@@ -403,6 +411,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.max_frames is not None and args.max_frames < 1:
             raise ConfigError('--max-frames must be >= 1')
+        if not (args.camera_fps >= 0 and math.isfinite(args.camera_fps)):
+            raise ConfigError('--camera-fps must be >= 0')
         if args.jobs < 1:
             raise ConfigError('--jobs must be >= 1')
         methods = _split(args.methods) or list(METHODS)
@@ -430,10 +440,12 @@ def main(argv: list[str] | None = None) -> int:
     sequences.sort(key=lambda s: (KIND_ORDER[s.camera_kind], s.name))
     out = Path(args.out)
     if not args.quiet:
-        print(f'{len(methods)} methods x {len(sequences)} sequences, {args.mode}; '
+        rate = f'camera {args.camera_fps:g} Hz' if args.camera_fps else 'every scene frame'
+        print(f'{len(methods)} methods x {len(sequences)} sequences, {args.mode}, {rate}; '
               f'{geometry.describe()}', file=sys.stderr)
     started = time.monotonic()
-    result = evaluate(sequences, methods, mode=args.mode, screen=screen, settings=settings,
+    result = evaluate(sequences, methods, mode=args.mode, camera_fps=args.camera_fps,
+                      screen=screen, settings=settings,
                       control=control, seed=args.seed, jobs=args.jobs,
                       max_frames=args.max_frames, quiet=args.quiet,
                       video_dir=None if args.no_video else out / 'videos')
@@ -441,7 +453,7 @@ def main(argv: list[str] | None = None) -> int:
     for name, reason in result['skipped']:
         print(f'skipped {name}: {reason}', file=sys.stderr)
     result['settings'] = {
-        'data': str(root), 'mode': args.mode, 'screen': geometry.describe(),
+        'data': str(root), 'mode': args.mode, 'camera_fps': args.camera_fps, 'screen': geometry.describe(),
         'screen_config': screen, 'set': settings, 'seed': args.seed,
         'control': control, 'max_frames': args.max_frames, 'jobs': args.jobs,
         'seconds': round(time.monotonic() - started, 1)}
