@@ -58,6 +58,9 @@ PARAMS = (
     Param('watchdog_timeout', 2.0, 'No action location for this long (s): hold still',
           positive),
     Param('min_peak', 0.0, 'Ignore action locations whose surprise peak (z) is below this'),
+    Param('settle_time', 0.3, 'Ignore action locations from frames captured while the camera '
+          'moved or less than this long after it stopped, s (0: never, the paper)',
+          in_range(0.0, 5.0)),
     Param('step_delay_ms', 20, 'Servo step delay, ms per degree (sets the speed limit)',
           in_range(*STEP_DELAY_MS_RANGE)),
     *MAPPING_PARAMS,
@@ -84,7 +87,8 @@ def config_from(values: dict) -> ControllerConfig:
         pd = PDConfig(kp=values['kp'], kd=values['kd'], **pd_options)
     return ControllerConfig(pd=pd, mapping=mapping_from(values),
                             watchdog_timeout=values['watchdog_timeout'],
-                            step_delay_ms=values['step_delay_ms'], min_peak=values['min_peak'])
+                            step_delay_ms=values['step_delay_ms'], min_peak=values['min_peak'],
+                            settle_time=values['settle_time'])
 
 
 def _seconds(stamp) -> float:
