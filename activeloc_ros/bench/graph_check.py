@@ -1,0 +1,140 @@
+"""Is the ROS graph what the screen benchmark measures? Run both on one scene and compare.
+
+    python -m activeloc_ros.bench graph-check --scene otb_crossing --frames 40
+
+Runs ``bringup --mode lockstep --camera virtual:SCENE --arm sim --record DIR`` (every node
+in its own process, the packaged params), reads the pan and tilt each frame was rendered
+with (``camera/pose``), runs ``closed_loop.run_episode`` in lockstep on the same frames
+with the same perception and controller settings, and prints the largest per-frame
+difference of the camera angles. Exit 0 when every frame agrees within the tolerance.
+"""
+import argparse
+import math
+from pathlib import Path
+import subprocess
+import sys
+import tempfile
+
+import yaml
+
+from activeloc_ros.bench.pointers import ModelPointer
+from activeloc_ros.closed_loop import run_episode
+from activeloc_ros.data import FrameTruth
+from activeloc_ros.errors import ActivelocError
+from activeloc_ros.paths import share_path
+from activeloc_ros.screen import VirtualScreen
+from activeloc_ros.sources import default_bag, open_scene
+
+
+def node_settings(node: str) -> dict:
+    """Declared defaults of a node overlaid with its packaged params/<node>.yaml."""
+    if node == 'controller':
+        from activeloc_ros.controller_node import PARAMS
+    else:
+        from activeloc_ros.perception_node import model_params
+        PARAMS = model_params()
+    values = {p.name: p.default for p in PARAMS}
+    text = yaml.safe_load(share_path(f'params/{node}.yaml').read_text()) or {}
+    for section in text.values():
+        values.update(section.get('ros__parameters', {}))
+    return values
+
+
+def bench_poses(scene: str, frames: int) -> list[tuple[float, float, float]]:
+    """(t, pan, tilt) per frame of the benchmark's closed loop on the scene."""
+    from activeloc_ros.controller_node import config_from
+    from activeloc_ros.perception.model import PerceptionConfig
+    source = open_scene(scene)
+    fps = source.fps
+
+    def scene_frames():
+        for i in range(frames):
+            frame = source.read()
+            if frame is None:
+                return
+            yield i, frame.rgb, FrameTruth(i, None, (), False)
+
+    perception = node_settings('perception')
+    fields = PerceptionConfig.descriptions()
+    pointer = ModelPointer('ours', {k: v for k, v in perception.items() if k in fields})
+    episode = run_episode(scene_frames(), pointer, fps=fps, screen=VirtualScreen(),
+                          controller=config_from(node_settings('controller')),
+                          mode='lockstep')
+    source.close()
+    return [(r.t, r.pan, r.tilt) for r in episode.records]
+
+
+def graph_poses(scene: str, frames: int, record: Path) -> list[tuple[float, float, float]]:
+    """(t, pan, tilt) per frame of a lockstep bringup run recorded to `record`."""
+    from activeloc_ros.lockstep import recorded_poses
+    params = record.parent / f'{record.name}-camera.yaml'
+    params.write_text(yaml.safe_dump(
+        {'camera': {'ros__parameters': {'max_frames': frames}}}))
+    command = [sys.executable, '-m', 'activeloc_ros.bringup', '--mode', 'lockstep',
+               '--camera', f'virtual:{scene}', '--arm', 'sim', '--params', str(params),
+               '--record', str(record), '--log-dir', str(record.parent / 'logs')]
+    print('$ ' + ' '.join(command), file=sys.stderr)
+    done = subprocess.run(command, check=False)
+    if done.returncode != 0:
+        raise ActivelocError(f'bringup exited {done.returncode} (logs in '
+                             f'{record.parent / "logs"})')
+    return recorded_poses(record)
+
+
+def compare(graph: list, bench: list, tolerance_deg: float) -> tuple[bool, str]:
+    lines = []
+    worst = 0.0
+    for (tg, pg, gg), (tb, pb, gb) in zip(graph, bench):
+        if abs(tg - tb) > 1e-6:
+            return False, f'frame times differ: graph {tg:.6f} s, bench {tb:.6f} s'
+        worst = max(worst, abs(math.degrees(pg - pb)), abs(math.degrees(gg - gb)))
+    same_length = len(graph) == len(bench)
+    ok = same_length and worst <= tolerance_deg and len(graph) > 0
+    lines.append(f'frames: graph {len(graph)}, bench {len(bench)}')
+    lines.append(f'largest per-frame difference of pan or tilt: {worst:.4f} deg '
+                 f'(tolerance {tolerance_deg:g} deg)')
+    if graph:
+        t, pan, tilt = graph[-1]
+        lines.append(f'last frame t={t:.2f} s: pan {math.degrees(pan):.1f} deg, '
+                     f'tilt {math.degrees(tilt):.1f} deg')
+    lines.append('SAME' if ok else 'DIFFERENT')
+    return ok, '\n'.join(lines)
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog='python -m activeloc_ros.bench graph-check',
+        description='Run the ROS graph in lockstep and the screen benchmark\'s closed loop on '
+                    'one scene and compare the camera angles frame by frame.')
+    p.add_argument('--scene', default=f'bag:{default_bag()}',
+                   help='what the virtual screen shows: bag:PATH, video:PATH, a sequence '
+                        'folder or name (default: the bundled bag)')
+    p.add_argument('--frames', type=int, default=40, help='frames to run (default 40)')
+    p.add_argument('--tolerance-deg', type=float, default=0.5,
+                   help='largest allowed per-frame difference (default 0.5 deg: half a '
+                        'servo step)')
+    p.add_argument('--keep', type=Path, help='keep the recorded bag and logs here')
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    if args.frames < 1:
+        print('error: --frames must be >= 1', file=sys.stderr)
+        return 2
+    with tempfile.TemporaryDirectory(prefix='graph-check-') as tmp:
+        work = args.keep or Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        try:
+            graph = graph_poses(args.scene, args.frames, work / 'run')
+            bench = bench_poses(args.scene, args.frames)
+        except ActivelocError as err:
+            print(f'error: {err}', file=sys.stderr)
+            return 2
+    ok, report = compare(graph, bench, args.tolerance_deg)
+    print(report)
+    return 0 if ok else 1
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
