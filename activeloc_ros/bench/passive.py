@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 
 from activeloc_ros import data, metrics
+from activeloc_ros.bench import key_values, names
 from activeloc_ros.errors import ActivelocError, DataError
 from activeloc_ros.paths import write_atomic
 from activeloc_ros.progress import Progress
@@ -328,10 +329,6 @@ def markdown(result: dict) -> str:
     return '\n'.join(lines)
 
 
-def _split(values: list[str] | None) -> list[str]:
-    return [v for item in values or [] for v in item.split(',') if v]
-
-
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog='python -m activeloc_ros.bench passive',
@@ -365,28 +362,15 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
-def _extra_settings(items: list[str]) -> dict:
-    extra = {}
-    for item in items:
-        key, sep, value = item.partition('=')
-        if not sep or not key:
-            raise ActivelocError(f'--set expects KEY=VALUE, got {item!r}')
-        try:
-            extra[key] = json.loads(value)
-        except json.JSONDecodeError:
-            extra[key] = value
-    return extra
-
-
 def build_methods(args: argparse.Namespace) -> list[Method]:
     methods: list[Method] = [RandomMap(args.seed), CentreBias(), FrameDiff()]
     if args.no_model:
         return methods
-    ablations = _split(args.ablations)
+    ablations = names(args.ablations)
     if 'all' in ablations:
         ablations = list(ABLATIONS)
-    extra = _extra_settings(args.set)
-    for encoder in _split(args.encoder) or [None]:
+    extra = key_values(args.set, '--set')
+    for encoder in names(args.encoder) or [None]:
         for ablation in ablations:
             methods.append(ModelMethod(encoder, ablation, seed=args.seed, extra=extra))
     return methods
@@ -399,7 +383,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         root = data.resolve_data_root(args.data)
-        sequences, skipped = data.load_sequences(root, names=_split(args.sequences),
+        sequences, skipped = data.load_sequences(root, names=names(args.sequences),
                                                  cameras=args.camera)
         methods = build_methods(args)
     except ActivelocError as err:

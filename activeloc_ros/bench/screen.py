@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 
 from activeloc_ros import data
+from activeloc_ros.bench import key_values, names
 from activeloc_ros.bench.pointers import (
     ABLATIONS, CentrePointer, ModelPointer, OraclePointer, RandomPointer)
 from activeloc_ros.closed_loop import FrameRecord, MODES, run_episode
@@ -350,23 +351,6 @@ def plots(result: dict, out: Path) -> list[Path]:
 
 # -- command line ----------------------------------------------------------------------------
 
-def _split(values: list[str] | None) -> list[str]:
-    return [v for item in values or [] for v in item.split(',') if v]
-
-
-def _settings(items: list[str], what: str) -> dict:
-    out = {}
-    for item in items:
-        key, sep, value = item.partition('=')
-        if not sep or not key:
-            raise ConfigError(f'{what} expects KEY=VALUE, got {item!r}')
-        try:
-            out[key] = json.loads(value)
-        except json.JSONDecodeError:
-            out[key] = value
-    return out
-
-
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog='python -m activeloc_ros.bench screen',
@@ -415,19 +399,19 @@ def main(argv: list[str] | None = None) -> int:
             raise ConfigError('--camera-fps must be >= 0')
         if args.jobs < 1:
             raise ConfigError('--jobs must be >= 1')
-        methods = _split(args.methods) or list(METHODS)
+        methods = names(args.methods) or list(METHODS)
         for m in methods:
             if m not in METHODS:
                 raise ConfigError(f'unknown method {m!r}; known: {", ".join(METHODS)}')
-        screen = _settings(args.screen, '--screen')
+        screen = key_values(args.screen, '--screen')
         geometry = VirtualScreen(ScreenConfig.from_dict(screen))
-        settings = _settings(args.set, '--set')
-        control = _settings(args.control, '--control')
+        settings = key_values(args.set, '--set')
+        control = key_values(args.control, '--control')
         controller_for('ours', control)
         if any(m in MODEL_METHODS for m in methods):
             ModelPointer('check', {'seed': args.seed, **settings})  # weights, settings: now
         root = data.resolve_data_root(args.data)
-        sequences, skipped = data.load_sequences(root, names=_split(args.sequences),
+        sequences, skipped = data.load_sequences(root, names=names(args.sequences),
                                                  cameras=args.camera)
     except ActivelocError as err:
         print(f'error: {err}', file=sys.stderr)
