@@ -42,6 +42,22 @@ class ModelPointer:
         return Pointing(result.location_px, result.surprise_map, result.peak)
 
 
+class TrackerMethod:
+    """An OpenCV tracker baseline (``bench.trackers``) started from an EdgeBoxes proposal
+    on the first camera frame, steering to its box centre."""
+
+    def __init__(self, kind: str):
+        from activeloc_ros.bench.trackers import TrackerPointer
+        self.tracker = TrackerPointer(kind)
+        self.name = self.tracker.name
+
+    def reset(self) -> None:
+        self.tracker.reset()
+
+    def locate(self, view: View) -> Pointing:
+        return Pointing(self.tracker.locate(view.rgb))
+
+
 class CentrePointer:
     """The camera never moves (it looks at the screen centre from the home pose)."""
 

@@ -19,6 +19,7 @@ import os
 from pathlib import Path
 import sys
 import time
+import traceback
 
 import cv2
 import numpy as np
@@ -26,7 +27,7 @@ import numpy as np
 from activeloc_ros import data
 from activeloc_ros.bench import key_values, names
 from activeloc_ros.bench.pointers import (
-    ABLATIONS, CentrePointer, ModelPointer, OraclePointer, RandomPointer)
+    ABLATIONS, CentrePointer, ModelPointer, OraclePointer, RandomPointer, TrackerMethod)
 from activeloc_ros.closed_loop import FrameRecord, MODES, run_episode
 from activeloc_ros.control import ControllerConfig, PD_VARIANTS, PDConfig
 from activeloc_ros.errors import ActivelocError, ConfigError, DataError
@@ -58,8 +59,7 @@ def method_parts(name: str) -> tuple[dict, str]:
 def make_pointer(name: str, settings: dict, seed: int):
     """The pointer of a method (model methods get `settings` + their ablation)."""
     if name in TRACKER_METHODS:
-        from activeloc_ros.bench.trackers import TrackerPointer
-        return TrackerPointer(name)
+        return TrackerMethod(name)
     if name == 'random':
         return RandomPointer(seed=seed)
     if name == 'centre':
@@ -109,6 +109,7 @@ def run_job(job: dict) -> dict:
     if job.get('threads'):
         import torch
         torch.set_num_threads(job['threads'])
+        cv2.setNumThreads(job['threads'])   # OpenCV's own pool would oversubscribe the cores
     started = time.perf_counter()
     seq = data.load_sequence(job['path'])
     screen = VirtualScreen(ScreenConfig(**job['screen']))
@@ -132,6 +133,9 @@ def run_job(job: dict) -> dict:
             video.finish()
     except (DataError, OSError) as err:
         return {'method': job['method'], 'sequence': seq.name, 'error': str(err)}
+    except Exception:  # noqa: B902 - one broken run must not cost the others
+        return {'method': job['method'], 'sequence': seq.name,
+                'error': f'{job["method"]} failed: {traceback.format_exc()}'}
     return {'method': job['method'], 'sequence': seq.name, 'camera': seq.camera_kind,
             'summary': episode.summary(), 'seconds': time.perf_counter() - started,
             'frames': [_frame_row(r) for r in episode.records]}
