@@ -240,3 +240,13 @@ def test_help(capsys):
         bench.main(['--help'])
     assert exc.value.code == 0
     assert '--mode' in capsys.readouterr().out
+
+
+def test_tracker_methods_run_in_the_loop(tmp_path, capsys):
+    make_walker(tmp_path, n=8)
+    assert bench.main(['--data', str(tmp_path), '--methods', 'kcf', 'mosse', '--jobs', '1',
+                       '--no-video', '--quiet', '--json', '--out', str(tmp_path / 'out'),
+                       '--screen', 'width=320', 'height=240']) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [r['method'] for r in rows] == ['kcf', 'mosse']
+    assert all(math.isfinite(r['aae_deg']) for r in rows)
