@@ -125,8 +125,9 @@ def gaze_map(location: tuple[float, float] | None, image_wh: tuple[int, int], *,
 
 
 def _centre(box) -> tuple[float, float]:
-    # box pixels cover [x, x + w): its centre in pixel-centre coordinates
-    return box.x + box.w / 2.0 - 0.5, box.y + box.h / 2.0 - 0.5
+    # box pixels cover [x, x + w); the screen puts pixel centres on integers
+    x, y = box.centre
+    return x - 0.5, y - 0.5
 
 
 def run_episode(frames: Iterable[tuple[int, np.ndarray, FrameTruth]], pointer: Pointer, *,

@@ -28,6 +28,8 @@ GT_FILE = 'gt_xywh.txt'
 GT_ALL_FILE = 'gt_all_xywh.txt'
 REQUIRED_META = ('W', 'H', 'frames', 'camera')
 CAMERA_KINDS = ('static', 'moving', 'pan')
+# the order benchmark tables list them in: still cameras first
+KIND_ORDER = {'static': 0, 'pan': 1, 'moving': 2}
 DEFAULT_FPS = 30.0  # OTB and VOT give no rate; they were filmed at about 30 frames/s
 
 

@@ -18,6 +18,7 @@ from typing import Iterable, Sequence
 import cv2
 import numpy as np
 
+from activeloc_ros import metrics
 from activeloc_ros.checks import above, in_range, non_negative
 from activeloc_ros.control.braccio import ArmMapping
 from activeloc_ros.control.geometry import Intrinsics
@@ -192,8 +193,7 @@ class VirtualScreen:
         pts = np.asarray(list(points_xy), dtype=np.float64).reshape(-1, 2)
         world = self.scene_to_world(scene_wh) @ np.hstack([pts, np.ones((len(pts), 1))]).T
         axis = self.rotation(pan, tilt)[:, 2]
-        cos = (axis @ world) / np.linalg.norm(world, axis=0)
-        return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+        return np.array([metrics.angle_between(axis, ray) for ray in world.T])
 
     def view_outline(self, pan: float, tilt: float, scene_wh: tuple[int, int],
                      *, samples: int = 8) -> np.ndarray:

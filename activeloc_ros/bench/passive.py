@@ -28,12 +28,12 @@ import numpy as np
 
 from activeloc_ros import data, metrics
 from activeloc_ros.bench import key_values, names
+from activeloc_ros.bench.pointers import ABLATIONS as MODEL_ROWS
 from activeloc_ros.errors import ActivelocError, DataError
 from activeloc_ros.paths import write_atomic
 from activeloc_ros.progress import Progress
 
 GRID = (14, 14)
-KIND_ORDER = {'static': 0, 'pan': 1, 'moving': 2}
 # Paper Table 3 rows, as PerceptionConfig overrides (see `_ablation_overrides`).
 ABLATIONS = ('full', 'predlearn', 'no_norm_motion', 'no_attn')
 
@@ -115,17 +115,11 @@ class FrameDiff:
 
 
 def _ablation_overrides(ablation: str) -> dict:
-    """PerceptionConfig fields for each paper Table 3 row."""
-    table = {
-        'full': {},
-        # ECCV'20-era predictive learning: raw motion weighting and no L_attn
-        'predlearn': {'mode': 'predlearn'},
-        'no_norm_motion': {'motion': 'raw'},
-        'no_attn': {'use_attn_loss': False},
-    }
-    if ablation not in table:
-        raise ActivelocError(f'unknown ablation {ablation!r}; choose from {", ".join(table)}')
-    return table[ablation]
+    """PerceptionConfig fields for each paper Table 3 row (the screen benchmark's table)."""
+    if ablation not in ABLATIONS:
+        raise ActivelocError(f'unknown ablation {ablation!r}; choose from '
+                             f'{", ".join(ABLATIONS)}')
+    return dict(MODEL_ROWS[ablation])
 
 
 class ModelMethod:
@@ -267,7 +261,7 @@ def evaluate(sequences: list[data.Sequence], methods: list[Method], *,
             steps += t.steps
         rates = [s['hit_rate'] for s in seqs.values() if s['frames']]
         by_camera = {}
-        for kind in KIND_ORDER:
+        for kind in data.KIND_ORDER:
             kind_hits = [h for name, tallies in per_seq.items()
                          if info[name]['camera'] == kind for h in tallies[m.name].hits]
             if any(info[name]['camera'] == kind for name in per_seq):
@@ -300,7 +294,7 @@ def _pct(value: float) -> str:
 def markdown(result: dict) -> str:
     """The overall row per method, then hit % / AUC-Judd % per sequence (one row each)."""
     rows = result['methods']
-    kinds = [k for k in KIND_ORDER if rows and k in rows[0]['by_camera']]
+    kinds = [k for k in data.KIND_ORDER if rows and k in rows[0]['by_camera']]
     head = ['method', 'frames', 'hit %', 'hit % (seq mean)', 'AUC-Judd %']
     head += [f'hit % {k}' for k in kinds] + ['ms/frame']
     lines = ['| ' + ' | '.join(head) + ' |', '|---|' + '---:|' * (len(head) - 1)]
@@ -346,7 +340,7 @@ def parser() -> argparse.ArgumentParser:
                    help='extra PerceptionConfig fields for every model row, e.g. lr=1e-4')
     p.add_argument('--no-model', action='store_true', help='baselines only')
     p.add_argument('--sequences', nargs='+', metavar='NAME', help='only these sequences')
-    p.add_argument('--camera', nargs='+', choices=sorted(KIND_ORDER), metavar='KIND',
+    p.add_argument('--camera', nargs='+', choices=sorted(data.KIND_ORDER), metavar='KIND',
                    help='only these camera kinds: static, pan, moving')
     p.add_argument('--max-frames', type=int, metavar='N', help='first N frames of each')
     p.add_argument('--warmup', type=int, default=1, metavar='N',
@@ -394,7 +388,7 @@ def main(argv: list[str] | None = None) -> int:
     if not sequences:
         print(f'error: no usable sequence under {root}', file=sys.stderr)
         return 1
-    sequences.sort(key=lambda s: (KIND_ORDER[s.camera_kind], s.name))
+    sequences.sort(key=lambda s: (data.KIND_ORDER[s.camera_kind], s.name))
     try:
         result = evaluate(sequences, methods, max_frames=args.max_frames,
                           warmup=args.warmup, quiet=args.quiet, keep_frames=bool(args.out),

@@ -42,7 +42,6 @@ METHODS = (*MODEL_METHODS, 'random', 'centre', 'oracle', *TRACKER_METHODS)
 METRICS = (('aae_deg', 'AAE (deg)', 'lower is better'),
            ('auc_judd', 'AUC-Judd (%)', 'higher is better'),
            ('in_view', 'in view (%)', 'higher is better'))
-KIND_ORDER = {'static': 0, 'pan': 1, 'moving': 2}
 
 
 def method_parts(name: str) -> tuple[dict, str]:
@@ -229,9 +228,9 @@ def evaluate(sequences: list[data.Sequence], methods: list[str], *, mode: str,
             work.append({'path': str(seq.path), 'method': method, 'settings': settings,
                          'seed': seed, 'mode': mode, 'camera_fps': camera_fps, 'screen': screen, 'control': control,
                          'max_frames': max_frames, 'video': video, 'threads': threads})
-    # the model methods first (the slow ones), so the fast ones fill the gaps at the end
-    work.sort(key=lambda j: (j['method'] not in MODEL_METHODS, j['method'] == 'ours-resnet50'))
-    work.sort(key=lambda j: j['method'] != 'ours-resnet50')
+    # the slowest first (resnet50, then the other model methods), so the fast ones fill
+    # the gaps at the end
+    work.sort(key=lambda j: (j['method'] != 'ours-resnet50', j['method'] not in MODEL_METHODS))
     length = {s.name: len(s) if max_frames is None else min(len(s), max_frames)
               for s in sequences}
     progress = None if quiet else Progress(sum(length[Path(j['path']).name] for j in work),
@@ -366,7 +365,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--methods', nargs='+', metavar='NAME',
                    help=f'methods (default all): {", ".join(METHODS)}')
     p.add_argument('--sequences', nargs='+', metavar='NAME', help='only these sequences')
-    p.add_argument('--camera', nargs='+', choices=sorted(KIND_ORDER), metavar='KIND',
+    p.add_argument('--camera', nargs='+', choices=sorted(data.KIND_ORDER), metavar='KIND',
                    help='only sequences of these camera kinds: static, pan, moving')
     p.add_argument('--mode', choices=MODES, default='lockstep',
                    help='lockstep: every frame processed, deterministic (default); realtime: '
@@ -425,7 +424,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f'skipped {name}: {reason}', file=sys.stderr)
         print(f'error: no usable sequence under {root}', file=sys.stderr)
         return 1
-    sequences.sort(key=lambda s: (KIND_ORDER[s.camera_kind], s.name))
+    sequences.sort(key=lambda s: (data.KIND_ORDER[s.camera_kind], s.name))
     out = Path(args.out)
     if not args.quiet:
         rate = f'camera {args.camera_fps:g} Hz' if args.camera_fps else 'every scene frame'
