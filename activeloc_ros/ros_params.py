@@ -5,6 +5,7 @@ before the parameters are declared so values from `params/*.yaml` are validated 
 """
 import signal
 import sys
+import threading
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
@@ -75,17 +76,27 @@ def run(node_factory: Callable[..., Any], args=None, *,
     """
     from rclpy.signals import SignalHandlerOptions
     handler = SignalHandlerOptions.NO if on_stop else SignalHandlerOptions.ALL
+    stop = threading.Event()
+
+    def request_stop(signum, frame):
+        # The first Ctrl-C or kill only asks the loop to end: an exception raised in the
+        # middle of rclpy's C++ (taking a message) would come out as a RuntimeError and
+        # fail the exit. A second one interrupts on_stop at once.
+        stop.set()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, _interrupt)
+
     if on_stop:
         # Ctrl-C and kill both reach on_stop, even where SIGINT came in ignored (a process
         # started in the background inherits SIG_IGN, and Python then leaves it so).
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-        signal.signal(signal.SIGTERM, _interrupt)
+        signal.signal(signal.SIGINT, request_stop)
+        signal.signal(signal.SIGTERM, request_stop)
     rclpy.init(args=args, signal_handler_options=handler)
     node = None
     try:
         node = node_factory()
         # A node that ends by itself (a camera at the end of its bag) sets `finished`.
-        while rclpy.ok() and not getattr(node, 'finished', False):
+        while rclpy.ok() and not stop.is_set() and not getattr(node, 'finished', False):
             rclpy.spin_once(node, timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
