@@ -61,6 +61,11 @@ PARAMS = (
     Param('settle_time', 0.3, 'Ignore action locations from frames captured while the camera '
           'moved or less than this long after it stopped, s (0: never, the paper)',
           in_range(0.0, 5.0)),
+    Param('pan_limit_deg', 180.0, 'Never aim farther than this left or right of the home '
+          'direction, degrees (the workspace; the joint limits still apply)',
+          in_range(0.0, 180.0)),
+    Param('tilt_limit_deg', 180.0, 'Never aim farther than this up or down, degrees',
+          in_range(0.0, 180.0)),
     Param('step_delay_ms', 20, 'Servo step delay, ms per degree (sets the speed limit)',
           in_range(*STEP_DELAY_MS_RANGE)),
     *MAPPING_PARAMS,
@@ -88,7 +93,9 @@ def config_from(values: dict) -> ControllerConfig:
     return ControllerConfig(pd=pd, mapping=mapping_from(values),
                             watchdog_timeout=values['watchdog_timeout'],
                             step_delay_ms=values['step_delay_ms'], min_peak=values['min_peak'],
-                            settle_time=values['settle_time'])
+                            settle_time=values['settle_time'],
+                            pan_limit_deg=values['pan_limit_deg'],
+                            tilt_limit_deg=values['tilt_limit_deg'])
 
 
 def _seconds(stamp) -> float:

@@ -104,6 +104,17 @@ class VirtualScreen:
                 f'{self.distance * 100:.1f} cm, seeing {self.home_fraction:.0%} of the '
                 'screen at home')
 
+    def aim_limits_deg(self) -> tuple[float, float]:
+        """The largest pan and tilt (degrees, either way) at which the camera's view still
+        lies on the screen: each half-angle the screen spans from the camera, less half the
+        field of view along it."""
+        c = self.config
+        fx = self.K[0, 0]
+        half = ((c.screen_width_m, c.width), (c.screen_height_m, c.height))
+        return tuple(max(0.0, math.degrees(math.atan(size_m / 2.0 / self.distance)
+                                           - math.atan(pixels / 2.0 / fx)))
+                     for size_m, pixels in half)
+
     # -- poses ------------------------------------------------------------------------------
 
     def pan_tilt(self, joints_deg: Sequence[float]) -> tuple[float, float]:

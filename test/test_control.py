@@ -221,6 +221,21 @@ def test_locations_need_intrinsics_and_increasing_stamps():
     assert ctl.ignored == {'no camera info': 1, 'out of order': 2}
 
 
+def test_aim_limits_bound_the_camera_not_the_joints_beyond():
+    """A far action turns the camera only as far as the workspace allows, either way."""
+    ctl = make_controller(pan_limit_deg=12.0, tilt_limit_deg=5.0)
+    up_left = ctl.on_location(0.0, 0.0, 0.0, 10.0)                  # the image's corner
+    pan, tilt = ArmMapping().pan_tilt(up_left.joints_deg)
+    assert math.degrees(pan) == pytest.approx(12.0) and math.degrees(tilt) == pytest.approx(5.0)
+    ctl = make_controller(pan_limit_deg=12.0, tilt_limit_deg=5.0)
+    down_right = ctl.on_location(D435.width - 1, D435.height - 1, 0.0, 10.0)
+    pan, tilt = ArmMapping().pan_tilt(down_right.joints_deg)
+    assert math.degrees(pan) == pytest.approx(-12.0)
+    assert math.degrees(tilt) == pytest.approx(-5.0)
+    with pytest.raises(ConfigError, match='pan_limit_deg'):
+        ControllerConfig(pan_limit_deg=-1.0)
+
+
 def test_dead_band_keeps_the_last_command():
     ctl = make_controller(pd=PDConfig(kp=1.0, kd=0.1, dead_band=math.radians(2.0)))
     first = ctl.on_location(pixel_for(5.0), D435.cy, 0.0, 0.5)

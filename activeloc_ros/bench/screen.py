@@ -70,11 +70,14 @@ def make_pointer(name: str, settings: dict, seed: int):
 
 
 PD_OPTIONS = ('dead_band', 'derivative', 'derivative_tau')
-CONTROL_OPTIONS = ('settle_time', 'watchdog_timeout', 'step_delay_ms', 'min_peak')
+CONTROL_OPTIONS = ('settle_time', 'watchdog_timeout', 'step_delay_ms', 'min_peak',
+                   'pan_limit_deg', 'tilt_limit_deg')
 
 
-def controller_for(name: str, control: dict) -> ControllerConfig:
-    """The controller of a method: its PD variant plus the --control settings."""
+def controller_for(name: str, control: dict, screen: VirtualScreen | None = None
+                   ) -> ControllerConfig:
+    """The controller of a method: its PD variant plus the --control settings; with a
+    `screen`, aimed no farther than its view stays on the screen (unless set)."""
     unknown = sorted(set(control) - set(PD_OPTIONS) - set(CONTROL_OPTIONS))
     if unknown:
         raise ConfigError(f'unknown --control settings {unknown}; known: '
@@ -82,6 +85,10 @@ def controller_for(name: str, control: dict) -> ControllerConfig:
     variant = method_parts(name)[1] if name in MODEL_METHODS else 'paper'
     pd = PDConfig.variant(variant, **{k: v for k, v in control.items() if k in PD_OPTIONS})
     options = {k: v for k, v in control.items() if k in CONTROL_OPTIONS}
+    if screen is not None:
+        pan, tilt = screen.aim_limits_deg()
+        options.setdefault('pan_limit_deg', pan)
+        options.setdefault('tilt_limit_deg', tilt)
     if name not in MODEL_METHODS:
         # the settle gate makes up for the surprise map's blindness to the camera's own
         # motion; the baselines see no such thing and mostly do better without it (mean
@@ -121,7 +128,7 @@ def run_job(job: dict) -> dict:
             video = OverlayVideo(Path(job['video']), screen, seq.fps, job['method'])
         try:
             episode = run_episode(frames, pointer, fps=seq.fps, screen=screen,
-                                  controller=controller_for(job['method'], job['control']),
+                                  controller=controller_for(job['method'], job['control'], screen),
                                   mode=job['mode'], camera_fps=job['camera_fps'] or None,
                                   name=seq.name,
                                   on_frame=video.add if video else None)

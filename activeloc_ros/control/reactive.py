@@ -31,6 +31,10 @@ class ControllerConfig:
         camera's own motion makes the whole view unpredictable, most of all where new
         content enters at the border it moves towards, so a moving camera's map points
         further along its own motion.
+    :param pan_limit_deg: the controller never aims the camera farther than this from the
+        home direction, left or right (the workspace, e.g. a screen's extent); the joint
+        limits still apply.
+    :param tilt_limit_deg: the same, up or down.
     """
 
     pd: PDConfig = field(default_factory=PDConfig)
@@ -40,8 +44,14 @@ class ControllerConfig:
     min_peak: float = -math.inf
     pose_slack: float = 0.5
     settle_time: float = 0.3
+    pan_limit_deg: float = 180.0
+    tilt_limit_deg: float = 180.0
 
     def __post_init__(self):
+        for name in ('pan_limit_deg', 'tilt_limit_deg'):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0 <= value <= 180):
+                raise ConfigError(f'{name} must be within 0..180 degrees, got {value}')
         if not math.isfinite(self.watchdog_timeout) or self.watchdog_timeout <= 0:
             raise ConfigError(f'watchdog_timeout must be > 0 s, got {self.watchdog_timeout}')
         if math.isnan(self.min_peak):
@@ -245,7 +255,10 @@ class ReactiveController:
         if self.pd.within_dead_band(error):
             target = self.guard.last_deg  # on target or noise: no new motion
         else:
-            target = self.mapping.joints_deg(pan + d_pan, tilt + d_tilt)
+            pan_max = math.radians(self.config.pan_limit_deg)
+            tilt_max = math.radians(self.config.tilt_limit_deg)
+            target = self.mapping.joints_deg(min(max(pan + d_pan, -pan_max), pan_max),
+                                             min(max(tilt + d_tilt, -tilt_max), tilt_max))
         return self._emit(target, t_now, 'track', t_capture)
 
     def tick(self, t_now: float) -> Command | None:
