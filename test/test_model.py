@@ -6,6 +6,7 @@ whatever scale random ImageNet trunks give) keep the file fast. Nothing here mea
 """
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -354,3 +355,54 @@ def test_frame_rms_normalises_every_frame():
         x = torch.cat([model.preprocess(f) for f in clip(2)])
         f = model._to_cells(model.encoder(x) * torch.tensor([3.0, 0.1]).view(2, 1, 1, 1))
     np.testing.assert_allclose(f.square().mean(dim=(1, 2)).sqrt().numpy(), 1.0, rtol=1e-4)
+
+
+# -- the camera's own motion (ego_motion) -------------------------------------------------------
+
+def panning(n: int, *, step: int = 8, square: bool = False) -> list[np.ndarray]:
+    """A camera panning right over a still, textured scene: n (224, 224, 3) crops; with
+    `square`, a bright square also moves down the scene."""
+    rng = np.random.default_rng(3)
+    scene = cv2.GaussianBlur((rng.random((240, 224 + step * n, 3)) * 255).astype(np.uint8),
+                             (5, 5), 0)
+    frames = []
+    for i in range(n):
+        f = scene.copy()
+        if square:
+            f[40 + 12 * i:72 + 12 * i, 120 + step * i:152 + step * i] = (255, 255, 40)
+        frames.append(np.ascontiguousarray(f[8:232, step * i:step * i + 224]))
+    return frames
+
+
+def test_ego_motion_is_estimated_from_the_images():
+    from activeloc_ros.perception.egomotion import EgoMotion
+    a, b = (cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in panning(2))
+    ego = EgoMotion()
+    warp = ego.estimate(ego.keypoints(a), ego.keypoints(b), 224)
+    assert warp[:2, :2] == pytest.approx(np.eye(2), abs=0.01)
+    assert warp[:2, 2] == pytest.approx([-8.0, 0.0], abs=0.5)    # content moves left
+    assert ego.estimate(ego.keypoints(a), ego.keypoints(a), 224) is None   # no motion
+
+
+def test_warp_cells_moves_state_with_the_view():
+    from activeloc_ros.perception.egomotion import warp_cells
+    values = torch.arange(16.0).reshape(1, 16, 1)                   # a 4 x 4 grid
+    shift = np.array([[1.0, 0.0, 16.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])  # one cell right
+    moved = warp_cells(values, shift, 64, 4)[0, :, 0].reshape(4, 4)
+    assert moved[:, 0].abs().max() < 1e-4                           # nothing seen there
+    assert moved[:, 1:] == pytest.approx(values[0, :, 0].reshape(4, 4)[:, :3], abs=1e-4)
+
+
+def test_ego_motion_takes_the_pan_out_of_the_surprise():
+    """Panning over a still scene: compared in the new view, almost nothing changed; a
+    square moving in the scene is then where the map peaks."""
+    error = {}
+    for mode in ('none', 'similarity'):
+        model = make(real=True, ego_motion=mode)
+        error[mode] = [model.step(f) for f in panning(3)][-1].losses['global']
+    assert 0 < error['similarity'] < 0.3 * error['none']
+    model = make(real=True, ego_motion='similarity')
+    last = [model.step(f) for f in panning(3, square=True)][-1]
+    # the square covers rows 56..88 and columns 120..152 of the last crop (16 px cells)
+    row, col = last.cell
+    assert 2 <= row <= 5 and 7 <= col <= 9, last.cell

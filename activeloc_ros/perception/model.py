@@ -110,6 +110,11 @@ class PerceptionConfig:
         1.0, 'motion scale s of the sigmoid weightings (paper: 1)', above(0.0))
     use_attn_loss: bool = _param(True, 'add L_attn (paper Eq. 3); False = Table 3 "w/o L_attn"')
     attn_weight: float = _param(1.0, 'factor of L_attn in the total loss', at_least(0.0))
+    ego_motion: str = _param(
+        'none', 'the camera\'s own motion: none = ignored (paper; a turning camera makes the '
+        'whole view surprising); similarity = estimated from the images (ORB + RANSAC), the '
+        'new frame is compared with the previous one warped into its view, and the LSTM '
+        'state and past maps move with it', one_of('none', 'similarity'))
     map_temperature: float = _param(
         1.0, 'softmax temperature of the surprise map over the cells (paper: 1)', above(0.0))
     loss_reduction: str = _param(
@@ -371,6 +376,10 @@ class SurpriseModel:
                            'scale': cfg.encoder_lr_scale})
         self.optimizer = _make_optimizer(cfg, groups)
         self.loss_window = collections.deque(maxlen=cfg.adaptive_window)
+        self.ego = None
+        if cfg.ego_motion != 'none':
+            from activeloc_ros.perception.egomotion import EgoMotion
+            self.ego = EgoMotion()
         self.nan_events = 0
         self.frame_index = 0
         self.updates = 0
@@ -386,6 +395,8 @@ class SurpriseModel:
         self.f_prev = None         # (N, C) its features
         self.map_prev = None       # (N,) surprise map of frame t-1
         self.map_prev2 = None      # (N,) and of frame t-2
+        self.img_prev = None       # (S, S, 3) previous resized image (ego_motion)
+        self.keys_prev = None      # its ORB keypoints and descriptors (ego_motion)
 
     def _params(self) -> list[torch.Tensor]:
         return [p for g in self.optimizer.param_groups for p in g['params']]
@@ -414,6 +425,11 @@ class SurpriseModel:
     # -- one frame ---------------------------------------------------------------------------
     def preprocess(self, frame: np.ndarray) -> torch.Tensor | None:
         """(H, W, 3) RGB 0..255 -> (1, 3, S, S) normalised encoder input; None if not finite."""
+        img = self._resize(frame)
+        return None if img is None else self._tensor(img)
+
+    def _resize(self, frame: np.ndarray) -> np.ndarray | None:
+        """(H, W, 3) RGB 0..255 -> (S, S, 3) encoder-sized image; None if not finite."""
         _check_frame(frame)
         img = frame
         if frame.dtype != np.uint8:
@@ -426,6 +442,9 @@ class SurpriseModel:
                          interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
         if self.cfg.blur_ksize:
             img = cv2.GaussianBlur(img, (self.cfg.blur_ksize,) * 2, 0)
+        return img
+
+    def _tensor(self, img: np.ndarray) -> torch.Tensor:
         x = torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1)[None].float()
         x = self.encoder.preprocess(x)                          # (1, 3, S, S)
         if self.cfg.channels_last:
@@ -455,15 +474,19 @@ class SurpriseModel:
         cfg = self.cfg
         t0 = time.perf_counter()
         timings = dict.fromkeys(('preprocess', 'encode', 'predict', 'update'), 0.0)
-        x = self.preprocess(frame)
+        img = self._resize(frame)
+        x = None if img is None else self._tensor(img)
         index = self.frame_index
         self.frame_index += 1
-        t1 = time.perf_counter()
-        timings['preprocess'] = t1 - t0
         done = dict(frame=frame, index=index, timings=timings, t0=t0)
         if x is None:
+            timings['preprocess'] = time.perf_counter() - t0
             self._nonfinite()
             return self._result(None, **done)
+        if self.ego is not None:
+            self._follow_camera(img)
+        t1 = time.perf_counter()
+        timings['preprocess'] = t1 - t0
         f_prev, f_cur = self._encode(x)
         t2 = time.perf_counter()
         timings['encode'] = t2 - t1
@@ -504,6 +527,32 @@ class SurpriseModel:
             losses = {k: float(v.detach()) for k, v in
                       (('global', l_global), ('attn', l_attn), ('total', total))}
         return self._result(e, losses=losses, lr=lr, **done)
+
+    def _follow_camera(self, img: np.ndarray) -> None:
+        """Move what the model holds of the previous view into this one (`ego_motion`)."""
+        from activeloc_ros.perception import egomotion
+        gray = img if img.dtype == np.uint8 else np.clip(img, 0, 255).astype(np.uint8)
+        keys = self.ego.keypoints(cv2.cvtColor(gray, cv2.COLOR_RGB2GRAY))
+        prev_keys, self.keys_prev = self.keys_prev, keys
+        warp = None
+        if prev_keys is not None and self.f_prev is not None:
+            warp = self.ego.estimate(prev_keys, keys, self.size)
+        if warp is None:
+            self.img_prev = img
+            return
+        self.x_prev = self._tensor(egomotion.warp_image(self.img_prev, warp, img))
+        self.img_prev = img
+        with torch.no_grad():
+            self.f_prev = self._to_cells(self.frozen_encoder(self.x_prev))[0]
+        g = self.grid
+        if self.state is not None:
+            self.state = tuple(egomotion.warp_cells(s, warp, self.size, g) for s in self.state)
+        for name in ('map_prev', 'map_prev2'):
+            m = getattr(self, name)
+            if m is not None:
+                m = egomotion.warp_cells(m[None], warp, self.size, g)[0]
+                total = float(m.sum())
+                setattr(self, name, m / total if total > 0 else None)
 
     def _update(self, total: torch.Tensor) -> float | None:
         """One optimiser step; the learning rate used, or None if anything was not finite."""
