@@ -47,7 +47,7 @@ PARAMS = (
           + ', '.join(f'{k}={v}' for k, v in PD_VARIANTS.items()) + '; empty uses kp/kd',
           one_of('', *PD_VARIANTS)),
     Param('kp', 1.0, 'lambda_p of Eq. 4', non_negative),
-    Param('kd', 0.1, 'lambda_d of Eq. 4, seconds', non_negative),
+    Param('kd', 0.0, 'lambda_d of Eq. 4, seconds (paper 0.1)', non_negative),
     Param('derivative', 'target', "'target': d/dt of the action's direction (default: stable "
           "at 10 frames/s); 'error': d/dt of the camera-frame error, as printed in the paper",
           one_of(*DERIVATIVE_MODES)),

@@ -37,21 +37,23 @@ from activeloc_ros.screen import ScreenConfig, VirtualScreen
 
 TRACKER_METHODS = ('tld', 'mil', 'mosse', 'kcf', 'csrt')
 MODEL_METHODS = ('ours', *(f'ours-{a}' for a in ABLATIONS if a != 'full'),
-                 *(f'ours-pd-{v}' for v in PD_VARIANTS if v != 'paper'))
+                 *(f'ours-pd-{v}' for v, gains in PD_VARIANTS.items()
+                   if gains != (PDConfig.kp, PDConfig.kd)))
 METHODS = (*MODEL_METHODS, 'random', 'centre', 'oracle', *TRACKER_METHODS)
 METRICS = (('aae_deg', 'AAE (deg)', 'lower is better'),
            ('auc_judd', 'AUC-Judd (%)', 'higher is better'),
            ('in_view', 'in view (%)', 'higher is better'))
 
 
-def method_parts(name: str) -> tuple[dict, str]:
-    """(PerceptionConfig overrides, PD variant) of a model method name."""
+def method_parts(name: str) -> tuple[dict, str | None]:
+    """(PerceptionConfig overrides, PD variant or None for the default gains) of a model
+    method name."""
     if name == 'ours':
-        return {}, 'paper'
+        return {}, None
     if name.startswith('ours-pd-') and name[8:] in PD_VARIANTS:
         return {}, name[8:]
     if name.startswith('ours-') and name[5:] in ABLATIONS:
-        return dict(ABLATIONS[name[5:]]), 'paper'
+        return dict(ABLATIONS[name[5:]]), None
     raise ConfigError(f'unknown method {name!r}; known: {", ".join(METHODS)}')
 
 
@@ -82,8 +84,9 @@ def controller_for(name: str, control: dict, screen: VirtualScreen | None = None
     if unknown:
         raise ConfigError(f'unknown --control settings {unknown}; known: '
                           f'{", ".join(PD_OPTIONS + CONTROL_OPTIONS)}')
-    variant = method_parts(name)[1] if name in MODEL_METHODS else 'paper'
-    pd = PDConfig.variant(variant, **{k: v for k, v in control.items() if k in PD_OPTIONS})
+    variant = method_parts(name)[1] if name in MODEL_METHODS else None
+    pd_options = {k: v for k, v in control.items() if k in PD_OPTIONS}
+    pd = PDConfig.variant(variant, **pd_options) if variant else PDConfig(**pd_options)
     options = {k: v for k, v in control.items() if k in CONTROL_OPTIONS}
     if screen is not None:
         pan, tilt = screen.aim_limits_deg()
@@ -92,8 +95,8 @@ def controller_for(name: str, control: dict, screen: VirtualScreen | None = None
     if name not in MODEL_METHODS:
         # the settle gate makes up for the surprise map's blindness to the camera's own
         # motion; the baselines see no such thing and mostly do better without it (mean
-        # AAE over the dev set, 10 Hz camera: oracle 6.0 vs 13.2 deg, random 22.5 vs 25.4,
-        # kcf 24.4 vs 25.2; mosse is the exception, 26.4 vs 24.7)
+        # AAE over the dev set, 10 Hz camera, kd 0.1, no aim limits: oracle 6.0 vs 13.2
+        # deg, random 22.5 vs 25.4, kcf 24.4 vs 25.2; mosse is the exception, 26.4 vs 24.7)
         options.setdefault('settle_time', 0.0)
     return ControllerConfig(pd=pd, **options)
 
@@ -127,8 +130,9 @@ def run_job(job: dict) -> dict:
         if job['video']:
             video = OverlayVideo(Path(job['video']), screen, seq.fps, job['method'])
         try:
+            controller = controller_for(job['method'], job['control'], screen)
             episode = run_episode(frames, pointer, fps=seq.fps, screen=screen,
-                                  controller=controller_for(job['method'], job['control'], screen),
+                                  controller=controller,
                                   mode=job['mode'], camera_fps=job['camera_fps'] or None,
                                   name=seq.name,
                                   on_frame=video.add if video else None)

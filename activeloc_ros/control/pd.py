@@ -28,7 +28,11 @@ class PDConfig:
     """Gains and shaping of the PD law.
 
     :param kp: lambda_p (1/1).
-    :param kd: lambda_d (seconds).
+    :param kd: lambda_d (seconds). 0 by default, not the paper's 0.1: the action location
+        is the argmax of a 14 x 14 map, which jumps by whole cells, and the derivative turns
+        each jump into a kick (``bench screen``, mean AAE over the dev set: 19.1 deg with
+        kd 0 vs 20.2 with 0.1, static sequences 13.0 vs 17.6; the paper's gains are the
+        variant ``paper``).
     :param dead_band: while both error components are smaller than this (radians) the
         camera is on target: no new motion (see ``within_dead_band``). It gates the output
         instead of zeroing the error, so the derivative never sees a jump at its edge.
@@ -44,7 +48,7 @@ class PDConfig:
     """
 
     kp: float = 1.0
-    kd: float = 0.1
+    kd: float = 0.0
     dead_band: float = math.radians(2.0)
     derivative: str = 'target'
     derivative_tau: float = 0.0

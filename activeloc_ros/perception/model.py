@@ -30,8 +30,9 @@ features, each frame divided by its RMS under the default `feature_norm='frame_r
                the same under both reductions)
     total    = L_global + attn_weight * L_attn
 Defaults that differ from the paper, each measured (see the field helps): feature_norm,
-attn_rescale, Adam at 1e-3 instead of 1e-6, adaptive boost off, encoder frozen, and the
-motion weight 2*sigmoid(|d|)-1 (the literal sigmoid(d) is 0.5 where nothing moves).
+attn_rescale, Adam at 1e-3 instead of 1e-6, adaptive boost off, encoder frozen, the
+motion weight 2*sigmoid(|d|)-1 (the literal sigmoid(d) is 0.5 where nothing moves) and
+ego_motion (bench screen, dev set, mean AAE 19.1 deg with it vs 20.8 without).
 """
 import collections
 import dataclasses
@@ -111,10 +112,10 @@ class PerceptionConfig:
     use_attn_loss: bool = _param(True, 'add L_attn (paper Eq. 3); False = Table 3 "w/o L_attn"')
     attn_weight: float = _param(1.0, 'factor of L_attn in the total loss', at_least(0.0))
     ego_motion: str = _param(
-        'none', 'the camera\'s own motion: none = ignored (paper; a turning camera makes the '
-        'whole view surprising); similarity = estimated from the images (ORB + RANSAC), the '
-        'new frame is compared with the previous one warped into its view, and the LSTM '
-        'state and past maps move with it', one_of('none', 'similarity'))
+        'similarity', 'the camera\'s own motion: similarity = estimated from the images '
+        '(ORB + RANSAC), the new frame is compared with the previous one warped into its '
+        'view, and the LSTM state and past maps move with it; none = ignored (paper; a '
+        'turning camera makes the whole view surprising)', one_of('none', 'similarity'))
     map_temperature: float = _param(
         1.0, 'softmax temperature of the surprise map over the cells (paper: 1)', above(0.0))
     loss_reduction: str = _param(
