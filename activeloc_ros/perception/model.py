@@ -484,7 +484,7 @@ class SurpriseModel:
             timings['preprocess'] = time.perf_counter() - t0
             self._nonfinite()
             return self._result(None, **done)
-        if self.ego is not None:
+        if self.ego is not None:      # timed as preprocessing, re-encoding included
             self._follow_camera(img)
         t1 = time.perf_counter()
         timings['preprocess'] = t1 - t0
