@@ -1,6 +1,9 @@
 """Benchmarks: `python -m activeloc_ros.bench {perception,passive,screen,...} --help`."""
+import argparse
 import json
+from pathlib import Path
 
+from activeloc_ros import data
 from activeloc_ros.errors import ConfigError
 
 
@@ -21,3 +24,24 @@ def key_values(items: list[str], option: str) -> dict:
         except json.JSONDecodeError:
             out[key] = value
     return out
+
+
+def add_sequence_options(p: argparse.ArgumentParser) -> None:
+    """--data, --sequences, --camera and --max-frames: which annotated sequences to run."""
+    p.add_argument('--data', help=f'sequence root (default ${data.ENV_VAR} or '
+                                  '../shared/data/sequences beside the repo)')
+    p.add_argument('--sequences', nargs='+', metavar='NAME', help='only these sequences')
+    p.add_argument('--camera', nargs='+', choices=sorted(data.KIND_ORDER), metavar='KIND',
+                   help='only sequences of these camera kinds: static, pan, moving')
+    p.add_argument('--max-frames', type=int, metavar='N', help='first N frames of each')
+
+
+def load_selected(args: argparse.Namespace
+                  ) -> tuple[Path, list[data.Sequence], list[tuple[str, str]]]:
+    """(root, sequences, skipped) that `add_sequence_options` chose, the sequences in
+    camera-kind then name order; raises ActivelocError."""
+    root = data.resolve_data_root(args.data)
+    sequences, skipped = data.load_sequences(root, names=names(args.sequences),
+                                             cameras=args.camera)
+    sequences.sort(key=lambda s: (data.KIND_ORDER[s.camera_kind], s.name))
+    return root, sequences, skipped

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from activeloc_ros import data, metrics
-from activeloc_ros.bench import key_values, names
+from activeloc_ros.bench import add_sequence_options, key_values, load_selected, names
 from activeloc_ros.bench.pointers import ABLATIONS as MODEL_ROWS
 from activeloc_ros.errors import ActivelocError, DataError
 from activeloc_ros.paths import write_atomic
@@ -329,8 +329,7 @@ def parser() -> argparse.ArgumentParser:
         description='Fixed camera: hit rate of the map peak on the annotated actor and '
                     'AUC-Judd of the 14x14 map, for the perception model and the random, '
                     'centre and frame-differencing baselines.')
-    p.add_argument('--data', help=f'sequence root (default ${data.ENV_VAR} or '
-                                  '../shared/data/sequences beside the repo)')
+    add_sequence_options(p)
     p.add_argument('--encoder', nargs='+', metavar='NAME',
                    help='encoder(s) of the model, one row each (default: the config default)')
     p.add_argument('--ablations', nargs='+', metavar='NAME', default=['full'],
@@ -339,10 +338,6 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--set', nargs='+', metavar='KEY=JSON', default=[],
                    help='extra PerceptionConfig fields for every model row, e.g. lr=1e-4')
     p.add_argument('--no-model', action='store_true', help='baselines only')
-    p.add_argument('--sequences', nargs='+', metavar='NAME', help='only these sequences')
-    p.add_argument('--camera', nargs='+', choices=sorted(data.KIND_ORDER), metavar='KIND',
-                   help='only these camera kinds: static, pan, moving')
-    p.add_argument('--max-frames', type=int, metavar='N', help='first N frames of each')
     p.add_argument('--warmup', type=int, default=1, metavar='N',
                    help='frames not scored at the start of each sequence (default 1)')
     p.add_argument('--seed', type=int, default=0)
@@ -376,9 +371,7 @@ def main(argv: list[str] | None = None) -> int:
         print('--max-frames must be >= 1', file=sys.stderr)
         return 2
     try:
-        root = data.resolve_data_root(args.data)
-        sequences, skipped = data.load_sequences(root, names=names(args.sequences),
-                                                 cameras=args.camera)
+        root, sequences, skipped = load_selected(args)
         methods = build_methods(args)
     except ActivelocError as err:
         print(f'error: {err}', file=sys.stderr)
@@ -388,7 +381,6 @@ def main(argv: list[str] | None = None) -> int:
     if not sequences:
         print(f'error: no usable sequence under {root}', file=sys.stderr)
         return 1
-    sequences.sort(key=lambda s: (data.KIND_ORDER[s.camera_kind], s.name))
     try:
         result = evaluate(sequences, methods, max_frames=args.max_frames,
                           warmup=args.warmup, quiet=args.quiet, keep_frames=bool(args.out),

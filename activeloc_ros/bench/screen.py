@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from activeloc_ros import data
-from activeloc_ros.bench import key_values, names
+from activeloc_ros.bench import add_sequence_options, key_values, load_selected, names
 from activeloc_ros.bench.pointers import (
     ABLATIONS, CentrePointer, ModelPointer, OraclePointer, RandomPointer, TrackerMethod)
 from activeloc_ros.closed_loop import FrameRecord, MODES, run_episode
@@ -372,20 +372,15 @@ def parser() -> argparse.ArgumentParser:
         description='The projected-screen experiment (paper Table 2) in simulated time: '
                     'each method steers the simulated Braccio through a virtual screen; '
                     'AAE, AUC-Judd and in-view rate per sequence and overall.')
-    p.add_argument('--data', help=f'sequence root (default ${data.ENV_VAR} or '
-                                  '../shared/data/sequences beside the repo)')
+    add_sequence_options(p)
     p.add_argument('--methods', nargs='+', metavar='NAME',
                    help=f'methods (default all): {", ".join(METHODS)}')
-    p.add_argument('--sequences', nargs='+', metavar='NAME', help='only these sequences')
-    p.add_argument('--camera', nargs='+', choices=sorted(data.KIND_ORDER), metavar='KIND',
-                   help='only sequences of these camera kinds: static, pan, moving')
     p.add_argument('--mode', choices=MODES, default='lockstep',
                    help='lockstep: every frame processed, deterministic (default); realtime: '
                         'frames the method is too slow for are dropped')
     p.add_argument('--camera-fps', type=float, default=10.0, metavar='HZ',
                    help='frame rate of the virtual camera (default 10, the bundled bag\'s; '
                         '0: one picture per scene frame); the scene plays at its own rate')
-    p.add_argument('--max-frames', type=int, metavar='N', help='first N frames of each')
     p.add_argument('--set', nargs='+', metavar='KEY=VALUE', default=[],
                    help='PerceptionConfig fields for every model method, e.g. lr=1e-4')
     p.add_argument('--screen', nargs='+', metavar='KEY=VALUE', default=[],
@@ -425,9 +420,7 @@ def main(argv: list[str] | None = None) -> int:
         controller_for('ours', control)
         if any(m in MODEL_METHODS for m in methods):
             ModelPointer('check', {'seed': args.seed, **settings})  # weights, settings: now
-        root = data.resolve_data_root(args.data)
-        sequences, skipped = data.load_sequences(root, names=names(args.sequences),
-                                                 cameras=args.camera)
+        root, sequences, skipped = load_selected(args)
     except ActivelocError as err:
         print(f'error: {err}', file=sys.stderr)
         return 2
@@ -436,7 +429,6 @@ def main(argv: list[str] | None = None) -> int:
             print(f'skipped {name}: {reason}', file=sys.stderr)
         print(f'error: no usable sequence under {root}', file=sys.stderr)
         return 1
-    sequences.sort(key=lambda s: (data.KIND_ORDER[s.camera_kind], s.name))
     out = Path(args.out)
     if not args.quiet:
         rate = f'camera {args.camera_fps:g} Hz' if args.camera_fps else 'every scene frame'
