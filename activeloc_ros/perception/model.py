@@ -49,6 +49,7 @@ from torch import nn
 
 from activeloc_ros.checks import above, at_least, Check, one_of
 from activeloc_ros.errors import ConfigError, FrameError
+from activeloc_ros.perception import egomotion
 
 ENCODER_NAMES = ('vgg16', 'vgg19', 'efficientnet_lite0', 'resnet50')
 MOTIONS = ('abs_sigmoid', 'sigmoid', 'raw', 'none')
@@ -377,10 +378,7 @@ class SurpriseModel:
                            'scale': cfg.encoder_lr_scale})
         self.optimizer = _make_optimizer(cfg, groups)
         self.loss_window = collections.deque(maxlen=cfg.adaptive_window)
-        self.ego = None
-        if cfg.ego_motion != 'none':
-            from activeloc_ros.perception.egomotion import EgoMotion
-            self.ego = EgoMotion()
+        self.ego = egomotion.EgoMotion() if cfg.ego_motion != 'none' else None
         self.nan_events = 0
         self.frame_index = 0
         self.updates = 0
@@ -531,7 +529,6 @@ class SurpriseModel:
 
     def _follow_camera(self, img: np.ndarray) -> None:
         """Move what the model holds of the previous view into this one (`ego_motion`)."""
-        from activeloc_ros.perception import egomotion
         gray = img if img.dtype == np.uint8 else np.clip(img, 0, 255).astype(np.uint8)
         keys = self.ego.keypoints(cv2.cvtColor(gray, cv2.COLOR_RGB2GRAY))
         prev_keys, self.keys_prev = self.keys_prev, keys
@@ -543,8 +540,9 @@ class SurpriseModel:
             return
         self.x_prev = self._tensor(egomotion.warp_image(self.img_prev, warp, img))
         self.img_prev = img
-        with torch.no_grad():
-            self.f_prev = self._to_cells(self.frozen_encoder(self.x_prev))[0]
+        if not (self.train_encoder and self.cfg.encoder_grad == 'both'):  # else _encode does
+            with torch.no_grad():
+                self.f_prev = self._to_cells(self.frozen_encoder(self.x_prev))[0]
         g = self.grid
         if self.state is not None:
             self.state = tuple(egomotion.warp_cells(s, warp, self.size, g) for s in self.state)
