@@ -79,12 +79,42 @@ def node_arguments(node: str, args) -> list[str]:
         ros_args += ['-p', f'source:={args.camera}', '-p', f'rate:={args.rate}',
                      '-p', f'loop:={str(args.loop).lower()}',
                      '-p', f'lockstep:={str(args.mode == "lockstep").lower()}']
+    if node == 'controller':
+        for name, value in screen_aim_limits(args.camera, args.params).items():
+            ros_args += ['-p', f'{name}:={value!r}']
     if node == 'arm':
         backend, _, port = args.arm.partition(':')
         ros_args += ['-p', f'backend:={backend}']
         if port:
             ros_args += ['-p', f'port:={port}']
     return ros_args
+
+
+def file_params(node: str, files) -> dict:
+    """The parameters that ROS 2 params `files` give `node`, later files winning."""
+    values = {}
+    for path in files:
+        for key, section in (yaml.safe_load(Path(path).read_text()) or {}).items():
+            if key.lstrip('/') in ('**', node):
+                values.update(section.get('ros__parameters') or {})
+    return values
+
+
+def screen_aim_limits(camera: str, files) -> dict[str, float]:
+    """For a virtual camera, the controller's aim limits at which the view stays on the
+    screen, as the screen benchmark sets them; limits set in the user's `files` win."""
+    if not camera.startswith('virtual:'):
+        return {}
+    from activeloc_ros.camera_node import PARAMS, SCREEN_FIELDS
+    from activeloc_ros.screen import ScreenConfig, VirtualScreen
+    values = {p.name: p.default for p in PARAMS}
+    values.update(file_params('camera', [share_path('params/camera.yaml'), *files]))
+    screen = VirtualScreen(ScreenConfig(**{field: values[name]
+                                           for name, field in SCREEN_FIELDS.items()}))
+    own = file_params('controller', files)
+    return {name: limit
+            for name, limit in zip(('pan_limit_deg', 'tilt_limit_deg'), screen.aim_limits_deg())
+            if name not in own}
 
 
 def preflight(args) -> None:

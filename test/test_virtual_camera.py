@@ -364,6 +364,28 @@ def test_bringup_refuses_bad_virtual_cameras_before_any_node(tmp_path, args, mes
     assert not logs.exists(), 'a node was started'
 
 
+def test_bringup_aims_a_virtual_camera_no_farther_than_the_screen(tmp_path):
+    """As in the screen benchmark: the controller gets the screen's aim limits, from the
+    camera's params files, unless the user's own files set them."""
+    from activeloc_ros.bringup import node_arguments, parse_args
+    wider = tmp_path / 'wider.yaml'
+    wider.write_text('/**:\n  ros__parameters:\n    view_fraction: 0.5\n')
+    mine = tmp_path / 'mine.yaml'
+    mine.write_text('controller:\n  ros__parameters:\n    pan_limit_deg: 10.0\n')
+
+    def limits(*argv):
+        ros_args = node_arguments('controller', parse_args(list(argv)))
+        return {a.split(':=')[0]: float(a.split(':=')[1]) for a in ros_args
+                if a.startswith(('pan_limit_deg:=', 'tilt_limit_deg:='))}
+
+    pan, tilt = VirtualScreen().aim_limits_deg()
+    assert limits() == pytest.approx({'pan_limit_deg': pan, 'tilt_limit_deg': tilt})
+    narrower = limits('--params', str(wider))
+    assert narrower['pan_limit_deg'] < pan and narrower['tilt_limit_deg'] < tilt
+    assert set(limits('--params', str(mine))) == {'tilt_limit_deg'}
+    assert limits('--camera', f'bag:{default_bag()}') == {}
+
+
 def test_recorded_poses_read_back_per_frame(tmp_path):
     from activeloc_ros.bag import BagWriter
     from activeloc_ros.lockstep import recorded_poses

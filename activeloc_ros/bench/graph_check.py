@@ -18,6 +18,7 @@ import tempfile
 import yaml
 
 from activeloc_ros.bench.pointers import ModelPointer
+from activeloc_ros.bringup import file_params, screen_aim_limits
 from activeloc_ros.closed_loop import run_episode
 from activeloc_ros.data import FrameTruth
 from activeloc_ros.errors import ActivelocError
@@ -34,9 +35,7 @@ def node_settings(node: str) -> dict:
         from activeloc_ros.perception_node import model_params
         PARAMS = model_params()
     values = {p.name: p.default for p in PARAMS}
-    text = yaml.safe_load(share_path(f'params/{node}.yaml').read_text()) or {}
-    for section in text.values():
-        values.update(section.get('ros__parameters', {}))
+    values.update(file_params(node, [share_path(f'params/{node}.yaml')]))
     return values
 
 
@@ -54,11 +53,12 @@ def bench_poses(scene: str, frames: int) -> list[tuple[float, float, float]]:
                 return
             yield i, frame.rgb, FrameTruth(i, None, (), False)
 
+    control = {**node_settings('controller'), **screen_aim_limits(f'virtual:{scene}', [])}
     perception = node_settings('perception')
     fields = PerceptionConfig.descriptions()
     pointer = ModelPointer('ours', {k: v for k, v in perception.items() if k in fields})
     episode = run_episode(scene_frames(), pointer, fps=fps, screen=VirtualScreen(),
-                          controller=config_from(node_settings('controller')),
+                          controller=config_from(control),
                           mode='lockstep')
     source.close()
     return [(r.t, r.pan, r.tilt) for r in episode.records]
