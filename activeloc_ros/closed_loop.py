@@ -206,11 +206,14 @@ def run_episode(frames: Iterable[tuple[int, np.ndarray, FrameTruth]], pointer: P
         if t + 1e-9 >= captures * period:
             captures += 1
             rgb = screen.render(scene, pan, tilt)  # a dropped frame may still wait in the queue
-        view = None if rgb is None else View(rgb, index, t, pan, tilt, screen.project(points, pan, tilt, scene_wh),
-                    (screen.project([_centre(truth.primary)], pan, tilt, scene_wh)[0]
-                     if truth.primary else None),
-                    screen.project([((scene_wh[0] - 1) / 2, (scene_wh[1] - 1) / 2)],
-                                   pan, tilt, scene_wh)[0])
+        view = None
+        if rgb is not None:
+            primary = (screen.project([_centre(truth.primary)], pan, tilt, scene_wh)[0]
+                       if truth.primary else None)
+            centre = screen.project([((scene_wh[0] - 1) / 2, (scene_wh[1] - 1) / 2)],
+                                    pan, tilt, scene_wh)[0]
+            view = View(rgb, index, t, pan, tilt, screen.project(points, pan, tilt, scene_wh),
+                        primary, centre)
         if view is not None and (mode == 'lockstep' or busy_until <= t):
             busy_until = process(view, scene_wh, t)
             processed = True

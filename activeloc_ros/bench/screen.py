@@ -238,7 +238,8 @@ def evaluate(sequences: list[data.Sequence], methods: list[str], *, mode: str,
         for method in methods:
             video = str(video_dir / seq.name / f'{method}.mp4') if video_dir else ''
             work.append({'path': str(seq.path), 'method': method, 'settings': settings,
-                         'seed': seed, 'mode': mode, 'camera_fps': camera_fps, 'screen': screen, 'control': control,
+                         'seed': seed, 'mode': mode, 'camera_fps': camera_fps,
+                         'screen': screen, 'control': control,
                          'max_frames': max_frames, 'video': video, 'threads': threads})
     # the slowest first (resnet50, then the other model methods), so the fast ones fill
     # the gaps at the end
@@ -444,7 +445,8 @@ def main(argv: list[str] | None = None) -> int:
     for name, reason in result['skipped']:
         print(f'skipped {name}: {reason}', file=sys.stderr)
     result['settings'] = {
-        'data': str(root), 'mode': args.mode, 'camera_fps': args.camera_fps, 'screen': geometry.describe(),
+        'data': str(root), 'mode': args.mode, 'camera_fps': args.camera_fps,
+        'screen': geometry.describe(),
         'screen_config': screen, 'set': settings, 'seed': args.seed,
         'control': control, 'max_frames': args.max_frames, 'jobs': args.jobs,
         'seconds': round(time.monotonic() - started, 1)}
