@@ -349,6 +349,28 @@ def test_an_untrained_residual_predictor_gives_the_motion_weighted_difference_ma
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)
 
 
+@pytest.mark.parametrize('update_encoder', [False, True])
+def test_bfloat16_encoder_gives_float32_features_close_to_float32(update_encoder):
+    """encoder_precision only changes the encoder's arithmetic: the same features within
+    bfloat16's rounding, handed on in float32; the checkpointed weights stay float32."""
+    frames = clip(2, h=224, w=224)
+    features = {}
+    for precision in ('float32', 'bfloat16'):
+        model = make(real=True, encoder_precision=precision, update_encoder=update_encoder)
+        x = model.preprocess(frames[0])
+        with torch.no_grad():
+            features[precision] = model._features(model.frozen_encoder, x)[0]
+        assert all(p.dtype == torch.float32 for p in model.encoder.parameters())
+        result = model.step(frames[0])
+        result = model.step(frames[1])
+        assert result.surprise_map.dtype == np.float32
+        assert np.isfinite(result.surprise_map).all() and result.updated
+    f32, bf16 = features['float32'], features['bfloat16']
+    assert bf16.dtype == torch.float32 and bf16.shape == f32.shape
+    gap = float((bf16 - f32).norm() / f32.norm())
+    assert 0 < gap < 0.1, gap
+
+
 def test_frame_rms_normalises_every_frame():
     model = make(feature_norm='frame_rms')
     with torch.no_grad():
