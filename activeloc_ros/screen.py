@@ -105,15 +105,40 @@ class VirtualScreen:
                 'screen at home')
 
     def aim_limits_deg(self) -> tuple[float, float]:
-        """The largest pan and tilt (degrees, either way) at which the camera's view still
-        lies on the screen: each half-angle the screen spans from the camera, less half the
-        field of view along it."""
+        """The largest pan and tilt (degrees, either way) such that at every aim within both
+        the camera's whole view lies on the screen.
+
+        Each axis alone allows the half-angle the screen spans from the camera less half
+        the field of view along it; panning and tilting at once turns the view's corners
+        further out, so both limits are scaled down by one factor until the four combined
+        extremes keep the view on the screen too.
+        """
         c = self.config
         fx = self.K[0, 0]
         half = ((c.screen_width_m, c.width), (c.screen_height_m, c.height))
-        return tuple(max(0.0, math.degrees(math.atan(size_m / 2.0 / self.distance)
-                                           - math.atan(pixels / 2.0 / fx)))
-                     for size_m, pixels in half)
+        alone = [max(0.0, math.atan(size_m / 2.0 / self.distance)
+                      - math.atan(pixels / 2.0 / fx)) for size_m, pixels in half]
+        low, high = 0.0, 1.0
+        if self._on_screen(*alone):
+            low = 1.0
+        for _ in range(30 if low < 1.0 else 0):                  # bisection on the factor
+            mid = (low + high) / 2.0
+            low, high = (mid, high) if self._on_screen(mid * alone[0], mid * alone[1]) else (
+                low, mid)
+        return tuple(math.degrees(low * a) for a in alone)
+
+    def _on_screen(self, pan: float, tilt: float) -> bool:
+        """Does the whole view lie on the screen at each of the aims (+-pan, +-tilt)?"""
+        w, h = self.size
+        corners = [(-0.5, -0.5), (w - 0.5, -0.5), (-0.5, h - 0.5), (w - 0.5, h - 0.5)]
+        extent = (1000, 1000)                                    # scene pixels over the screen
+        for sp in (-1, 1):
+            for st in (-1, 1):
+                hit = self.to_scene(corners, sp * pan, st * tilt, extent)
+                if not (np.all(np.isfinite(hit)) and np.all(hit >= -0.5 - 1e-9)
+                        and np.all(hit <= extent[0] - 0.5 + 1e-9)):
+                    return False
+        return True
 
     # -- poses ------------------------------------------------------------------------------
 

@@ -75,15 +75,17 @@ def test_rays_that_miss_the_screen_render_black():
     assert image[:, :40].max() == 0 and image.max() == 200
 
 
-def test_at_the_aim_limits_the_view_still_lies_on_the_screen():
-    screen = VirtualScreen()
+@pytest.mark.parametrize('config', [ScreenConfig(), ScreenConfig(view_fraction=0.1)])
+def test_within_the_aim_limits_the_view_lies_on_the_screen(config):
+    screen = VirtualScreen(config)
     pan, tilt = (math.radians(a) for a in screen.aim_limits_deg())
+    assert pan > 0 and tilt > 0
     scene = np.full((SCENE[1], SCENE[0], 3), 200, np.uint8)
-    for sp, st in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+    for sp, st in ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, 1), (1, -1), (-1, -1)):
         image = screen.render(scene, sp * pan, st * tilt)
         assert image.min() > 0                               # no ray misses the screen
-        wider = screen.render(scene, sp * (pan + 0.05), st * (tilt + 0.05))
-        assert wider.min() == 0                              # a little farther, one does
+    wider = screen.render(scene, pan * 1.05, tilt * 1.05)
+    assert wider.min() == 0                                  # a little farther, one does
 
 
 def test_place_map_puts_the_peak_where_the_camera_looked():
