@@ -16,7 +16,8 @@ from activeloc_ros.errors import ConfigError, FrameError
 from activeloc_ros.perception import model as M
 from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
 
-SMALL = dict(pretrained=False, hidden=32, layers=3, attn_units=16, lr=1e-3, num_threads=0)
+SMALL = dict(encoder='efficientnet_lite0', encoder_precision='float32', pretrained=False,
+             hidden=32, layers=3, attn_units=16, lr=1e-3, num_threads=0)
 
 
 class TinyEncoder(nn.Module):
@@ -367,6 +368,8 @@ def test_bfloat16_encoder_gives_float32_features_close_to_float32(update_encoder
         assert np.isfinite(result.surprise_map).all() and result.updated
     f32, bf16 = features['float32'], features['bfloat16']
     assert bf16.dtype == torch.float32 and bf16.shape == f32.shape
+    auto = make(real=True, encoder_precision='auto', update_encoder=update_encoder)
+    assert auto.precision == ('bfloat16' if M.fast_bfloat16() else 'float32')
     gap = float((bf16 - f32).norm() / f32.norm())
     assert 0 < gap < 0.1, gap
 

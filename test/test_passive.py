@@ -221,7 +221,7 @@ def test_real_model_runs_on_a_synthetic_sequence(tmp_path, capsys):
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert code == 0
     model = rows[-1]
-    assert model['method'] == 'model:efficientnet_lite0/full' and model['frames'] == 2
+    assert model['method'] == 'model:vgg19/full' and model['frames'] == 2
     assert 0.0 <= model['hit_rate'] <= 1.0 and 0.5 <= model['auc_judd'] <= 1.0
     assert model['config']['pretrained'] is False
 

@@ -35,7 +35,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         description='Per-frame latency, frames/s and memory of the perception model '
                     '(encode + predict + one online update per frame).')
     p.add_argument('--encoder', action='append', choices=ENCODER_NAMES,
-                   help='encoder to measure; repeat for several (default efficientnet_lite0)')
+                   help='encoder to measure; repeat for several (default: the model\'s, vgg19)')
     p.add_argument('--frames', type=int, default=2000, help='frames per run (default 2000)')
     p.add_argument('--warmup', type=int, default=20,
                    help='first frames left out of the latency and RSS-growth figures')
@@ -195,7 +195,7 @@ def main(argv: list[str]) -> int:
         return 2
     updates = {'both': (False, True), 'yes': (True,), 'no': (False,)}[args.update_encoder]
     jobs = []
-    for encoder in args.encoder or ['efficientnet_lite0']:
+    for encoder in args.encoder or [PerceptionConfig.encoder]:
         for update in updates:
             config = {**extra, 'encoder': encoder, 'update_encoder': update,
                       'num_threads': args.threads}

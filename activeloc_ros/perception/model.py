@@ -31,8 +31,9 @@ features, each frame divided by its RMS under the default `feature_norm='frame_r
     total    = L_global + attn_weight * L_attn
 Defaults that differ from the paper, each measured (see the field helps): feature_norm,
 attn_rescale, Adam at 1e-3 instead of 1e-6, adaptive boost off, encoder frozen, the
-motion weight 2*sigmoid(|d|)-1 (the literal sigmoid(d) is 0.5 where nothing moves) and
-ego_motion (bench screen, dev set, mean AAE 19.1 deg with it vs 20.8 without).
+motion weight 2*sigmoid(|d|)-1 (the literal sigmoid(d) is 0.5 where nothing moves),
+ego_motion (bench screen, dev set, mean AAE 19.1 deg with it vs 20.8 without) and vgg19
+for the paper's vgg16 (whose weights no registry here holds), in bfloat16 where fast.
 """
 import collections
 import copy
@@ -54,6 +55,14 @@ from activeloc_ros.perception import egomotion
 
 ENCODER_NAMES = ('vgg16', 'vgg19', 'efficientnet_lite0', 'resnet50')
 MOTIONS = ('abs_sigmoid', 'sigmoid', 'raw', 'none')
+PRECISIONS = ('auto', 'float32', 'bfloat16')
+
+
+def fast_bfloat16() -> bool:
+    """Does this CPU have AMX tiles? With them bfloat16 convolutions run several times faster
+    than float32; without them they are emulated and slower."""
+    probe = getattr(torch.cpu, '_is_amx_tile_supported', None)   # private in torch 2.13
+    return bool(probe is not None and probe())
 
 
 def _blur(value: int) -> 'str | None':
@@ -71,15 +80,16 @@ class PerceptionConfig:
     """Every choice of the perception model; `from_dict` builds it from ROS parameters/YAML."""
     # encoder
     encoder: str = _param(
-        'efficientnet_lite0',
-        'CNN encoder to the 14x14 grid. Default efficientnet_lite0: ImageNet weights on the '
-        'registries, ~30x cheaper than vgg16 so the whole online step fits 10 frames/s on '
-        '2 CPU cores; vgg16 (pool4) is the paper\'s and needs `weights`', one_of(*ENCODER_NAMES))
+        'vgg19',
+        'CNN encoder to the 14x14 grid. Default vgg19 to pool4: the closest stand-in for the '
+        'paper\'s vgg16 pool4 whose ImageNet weights the registries hold; vgg16 needs '
+        '`weights`; efficientnet_lite0 is ~17x cheaper in float32, 3.5x in bfloat16 '
+        '(bench screen, static sequences: AAE 16.0 deg vs vgg19\'s 13.3)', one_of(*ENCODER_NAMES))
     weights: str = _param('', 'encoder weights file; empty = the package weight cache')
     encoder_precision: str = _param(
-        'float32', 'arithmetic of the encoder\'s forward pass: float32, or bfloat16 (autocast; '
-        'features within ~1% of float32, several times faster where the CPU has AMX, '
-        'slower where it has not)', one_of('float32', 'bfloat16'))
+        'auto', 'arithmetic of the encoder\'s forward pass: float32, or bfloat16 (features '
+        'within ~1% of float32; vgg19 6x faster on AMX cores, slower on CPUs without them); '
+        'auto = bfloat16 where the CPU has AMX, else float32', one_of(*PRECISIONS))
     pretrained: bool = _param(
         True, 'load ImageNet weights; False = random encoder, for unit tests only')
     blur_ksize: int = _param(
@@ -368,7 +378,11 @@ class SurpriseModel:
         if cfg.fold_bn and not self.train_encoder and _has_batchnorm(self.encoder):
             from activeloc_ros.perception.encoders import fold_batchnorm
             self.frozen_encoder = fold_batchnorm(self.encoder)
-        if cfg.encoder_precision == 'bfloat16' and not self.train_encoder:
+        precision = cfg.encoder_precision
+        if precision == 'auto':
+            precision = 'bfloat16' if fast_bfloat16() else 'float32'
+        self.precision = precision                              # the one in use
+        if precision == 'bfloat16' and not self.train_encoder:
             # cast the weights once: autocast would cast them again on every frame
             if self.frozen_encoder is self.encoder:
                 self.frozen_encoder = copy.deepcopy(self.encoder)
@@ -461,11 +475,11 @@ class SurpriseModel:
         return x
 
     def _features(self, encoder: nn.Module, x: torch.Tensor) -> torch.Tensor:
-        """(B, 3, S, S) -> (B, N, C) float32 features, computed at `encoder_precision`."""
+        """(B, 3, S, S) -> (B, N, C) float32 features, computed at `self.precision`."""
         return self._to_cells(self._forward(encoder, x))
 
     def _forward(self, encoder: nn.Module, x: torch.Tensor) -> torch.Tensor:
-        if self.cfg.encoder_precision == 'float32':
+        if self.precision == 'float32':
             return encoder(x)
         if encoder is self.frozen_encoder and not self.train_encoder:  # bfloat16 weights
             return encoder(x.to(torch.bfloat16)).float()
