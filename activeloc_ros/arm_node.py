@@ -17,6 +17,7 @@ import time
 
 from builtin_interfaces.msg import Time
 from rclpy.clock import Clock, ClockType
+from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -298,6 +299,10 @@ class ArmNode(Node):
             where = self.joints()
             if self.link is not None:
                 self.link.close()
+        if where is not None and not self.sim_time:
+            self._publish_state(where, self.get_clock().now().to_msg())
+        # the last state must reach the subscribers before this process ends
+        self.publisher.wait_for_all_acked(Duration(seconds=0.5))
         self.get_logger().info(
             f'stopped ({self.values["stop_mode"]}) at '
             + (', '.join(f'{q:.0f}' for q in where) if where else 'an unknown pose')
