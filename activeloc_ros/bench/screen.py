@@ -345,12 +345,13 @@ def plots(result: dict, out: Path) -> list[Path]:
         fig, ax = plt.subplots(figsize=(max(8, 1.1 * len(names) + 3), 4.5))
         n = len(result['methods'])
         width = 0.8 / max(n, 1)
+        colours = plt.get_cmap('tab20')       # 20 distinct colours: a table has 16 methods
         for i, row in enumerate(result['methods']):
             values = [row['sequences'][s][key] for s in names]
             if key != 'aae_deg':
                 values = [100 * v for v in values]
             ax.bar(np.arange(len(names)) + i * width - 0.4 + width / 2, values, width,
-                   label=row['method'])
+                   label=row['method'], color=colours(i % colours.N))
         ax.set_xticks(np.arange(len(names)), names, rotation=30, ha='right', fontsize=8)
         ax.set_ylabel(title)
         ax.set_title(f'{title} per sequence ({better})')
