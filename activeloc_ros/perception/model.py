@@ -428,7 +428,6 @@ class SurpriseModel:
         self.map_prev2 = None      # (N,) and of frame t-2
         self.img_prev = None       # (S, S, 3) previous resized image (ego_motion)
         self.keys_prev = None      # its ORB keypoints and descriptors (ego_motion)
-        self.warp_pending = None   # this frame's camera warp, for ego_warp: features
 
     def _params(self) -> list[torch.Tensor]:
         return [p for g in self.optimizer.param_groups for p in g['params']]
@@ -527,14 +526,14 @@ class SurpriseModel:
             timings['preprocess'] = time.perf_counter() - t0
             self._nonfinite()
             return self._result(None, **done)
-        self.warp_pending = None
+        warp = None
         if self.ego is not None:      # timed as preprocessing, re-encoding included
-            self._follow_camera(img)
+            warp = self._follow_camera(img)
         t1 = time.perf_counter()
         timings['preprocess'] = t1 - t0
         f_prev, f_cur = self._encode(x)
-        if self.warp_pending is not None and f_prev is not None:
-            f_prev = self._warp_features(f_prev, f_cur.detach(), self.warp_pending)
+        if warp is not None and cfg.ego_warp == 'features' and f_prev is not None:
+            f_prev = self._warp_features(f_prev, f_cur.detach(), warp)
         t2 = time.perf_counter()
         timings['encode'] = t2 - t1
         if not _finite([f_cur]):
@@ -575,8 +574,10 @@ class SurpriseModel:
                       (('global', l_global), ('attn', l_attn), ('total', total))}
         return self._result(e, losses=losses, lr=lr, **done)
 
-    def _follow_camera(self, img: np.ndarray) -> None:
-        """Move what the model holds of the previous view into this one (`ego_motion`)."""
+    def _follow_camera(self, img: np.ndarray) -> np.ndarray | None:
+        """Move what the model holds of the previous view into this one (`ego_motion`);
+        the camera's warp, or None if it did not move. With `ego_warp: features` the
+        previous features are left for `step` to warp, next to the new frame's."""
         gray = img if img.dtype == np.uint8 else np.clip(img, 0, 255).astype(np.uint8)
         keys = self.ego.keypoints(cv2.cvtColor(gray, cv2.COLOR_RGB2GRAY))
         prev_keys, self.keys_prev = self.keys_prev, keys
@@ -585,10 +586,8 @@ class SurpriseModel:
             warp = self.ego.estimate(prev_keys, keys, self.size)
         if warp is None:
             self.img_prev = img
-            return
-        if self.cfg.ego_warp == 'features':                     # step warps f_prev
-            self.warp_pending = warp
-        else:
+            return None
+        if self.cfg.ego_warp == 'image':
             self.x_prev = self._tensor(egomotion.warp_image(self.img_prev, warp, img))
             if not (self.train_encoder and self.cfg.encoder_grad == 'both'):  # else _encode
                 with torch.no_grad():
@@ -603,15 +602,16 @@ class SurpriseModel:
                 m = egomotion.warp_cells(m[None], warp, self.size, g)[0]
                 total = float(m.sum())
                 setattr(self, name, m / total if total > 0 else None)
+        return warp
 
     def _warp_features(self, f_prev: torch.Tensor, f_cur: torch.Tensor,
                        warp: np.ndarray) -> torch.Tensor:
         """(N, C) previous features moved into the current view (`ego_warp: features`);
         where the previous view saw nothing, the current features: no change there."""
-        g = self.grid
-        seen = egomotion.warp_cells(torch.ones(1, self.cells, 1), warp, self.size, g)[0]
-        moved = egomotion.warp_cells(f_prev[None], warp, self.size, g)[0]
-        return moved + (1.0 - seen) * f_cur
+        ones = torch.ones(self.cells, 1)                        # how much of a cell was seen
+        moved = egomotion.warp_cells(torch.cat([f_prev, ones], 1)[None], warp, self.size,
+                                     self.grid)[0]
+        return moved[:, :-1] + (1.0 - moved[:, -1:]) * f_cur
 
     def _update(self, total: torch.Tensor) -> float | None:
         """One optimiser step; the learning rate used, or None if anything was not finite."""
