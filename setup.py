@@ -29,6 +29,7 @@ setup(
         'rosbags==0.11.9',
         'PyYAML>=6.0',
         'matplotlib>=3.7',
+        'pyserial==3.5',
     ],
     extras_require={
         'ros': [
