@@ -30,6 +30,7 @@ setup(
         'PyYAML>=6.0',
         'matplotlib>=3.7',
         'pyserial==3.5',
+        'av==17.1.0',      # H.264 videos (its wheels bundle FFmpeg with libx264)
     ],
     extras_require={
         'ros': [

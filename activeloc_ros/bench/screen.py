@@ -17,6 +17,7 @@ import math
 import multiprocessing
 import os
 from pathlib import Path
+import signal
 import sys
 import time
 import traceback
@@ -26,6 +27,8 @@ import numpy as np
 
 from activeloc_ros import data
 from activeloc_ros.bench import add_sequence_options, key_values, load_selected, names
+from activeloc_ros.bench.time_plots import time_plots
+from activeloc_ros.bench.video import H264Writer
 from activeloc_ros.bench.pointers import (
     ABLATIONS, CentrePointer, ModelPointer, OraclePointer, RandomPointer, TrackerMethod)
 from activeloc_ros.closed_loop import FrameRecord, MODES, run_episode
@@ -165,8 +168,9 @@ FRAME_COLUMNS = ['index', 't', 'pan_deg', 'tilt_deg', 'processed', 'scored', 'aa
 
 class OverlayVideo:
     """The whole screen with the camera's view (yellow), the truth (green) and the
-    method's newest location (red), the camera image inset; written to a temporary file
-    and renamed at the end, so an interrupted run leaves no half video."""
+    method's newest location (red), the camera image inset, as H.264 that browsers play.
+    Written to a temporary file that `commit` renames once the whole benchmark has its
+    tables, so an interrupted run leaves the previous run's videos as they were."""
 
     def __init__(self, path: Path, screen: VirtualScreen, fps: float, label: str, *,
                  max_width: int = 640):
@@ -175,9 +179,26 @@ class OverlayVideo:
         self.fps = fps
         self.label = label
         self.max_width = max_width
-        self.tmp = path.with_name(f'.{path.stem}.tmp{path.suffix}')
+        self.tmp = self.temporary(path)
+        self.tmp.unlink(missing_ok=True)     # a killed run's leftover
         self.writer = None
         self.inset = None
+
+    @staticmethod
+    def temporary(path: Path) -> Path:
+        return path.with_name(f'.{path.stem}.tmp{path.suffix}')
+
+    @classmethod
+    def commit(cls, path: Path) -> None:
+        """Put a finished video in place (none if its run failed)."""
+        if cls.temporary(path).exists():
+            os.replace(cls.temporary(path), path)
+
+    @classmethod
+    def discard(cls, video_dir: Path) -> None:
+        """Remove every unfinished or uncommitted video under `video_dir`."""
+        for tmp in video_dir.glob('*/.*.tmp.mp4'):
+            tmp.unlink(missing_ok=True)
 
     def add(self, scene: np.ndarray, record: FrameRecord, camera: np.ndarray | None) -> None:
         h, w = scene.shape[:2]
@@ -185,10 +206,7 @@ class OverlayVideo:
         size = (int(round(w * scale)) // 2 * 2, int(round(h * scale)) // 2 * 2)
         if self.writer is None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.writer = cv2.VideoWriter(str(self.tmp), cv2.VideoWriter_fourcc(*'mp4v'),
-                                          self.fps, size)
-            if not self.writer.isOpened():
-                raise OSError(f'OpenCV cannot write {self.tmp}')
+            self.writer = H264Writer(self.tmp, self.fps, size)
         frame = cv2.resize(cv2.cvtColor(scene, cv2.COLOR_RGB2BGR), size,
                            interpolation=cv2.INTER_AREA)
         sx, sy = size[0] / w, size[1] / h
@@ -216,13 +234,19 @@ class OverlayVideo:
 
     def finish(self) -> None:
         if self.writer is not None:
-            self.writer.release()
-            os.replace(self.tmp, self.path)
+            self.writer.close()
 
     def abandon(self) -> None:
-        if self.writer is not None:
-            self.writer.release()
-        self.tmp.unlink(missing_ok=True)
+        try:
+            if self.writer is not None:
+                self.writer.close()
+        finally:
+            self.tmp.unlink(missing_ok=True)
+
+
+def _ignore_sigint() -> None:
+    # workers: Ctrl-C reaches the whole process group; the parent alone handles it
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 # -- the whole benchmark ---------------------------------------------------------------------
@@ -253,7 +277,7 @@ def evaluate(sequences: list[data.Sequence], methods: list[str], *, mode: str,
         results = map(run_job, work)
         pool = None
     else:
-        pool = multiprocessing.get_context('spawn').Pool(jobs, maxtasksperchild=None)
+        pool = multiprocessing.get_context('spawn').Pool(jobs, initializer=_ignore_sigint)
         results = pool.imap_unordered(run_job, work)
     try:
         for run in results:
@@ -335,7 +359,8 @@ def to_csv(result: dict) -> str:
 
 
 def plots(result: dict, out: Path) -> list[Path]:
-    """One bar chart per metric: methods x sequences (PNG, written atomically)."""
+    """One bar chart per metric (methods x sequences) and one plot over time per sequence
+    (PNG, written atomically)."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -363,7 +388,7 @@ def plots(result: dict, out: Path) -> list[Path]:
         path = out / f'{key}.png'
         write_atomic(path, buf.getvalue())
         paths.append(path)
-    return paths
+    return paths + time_plots(result, out)
 
 
 # -- command line ----------------------------------------------------------------------------
@@ -404,6 +429,17 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
+    try:
+        return run(args)
+    except KeyboardInterrupt:
+        OverlayVideo.discard(Path(args.out) / 'videos')
+        end_of_progress_line = '\n' if sys.stderr.isatty() else ''
+        print(f'{end_of_progress_line}interrupted: {args.out} keeps the previous results',
+              file=sys.stderr)
+        return 130
+
+
+def run(args: argparse.Namespace) -> int:
     try:
         if args.max_frames is not None and args.max_frames < 1:
             raise ConfigError('--max-frames must be >= 1')
@@ -456,6 +492,10 @@ def main(argv: list[str] | None = None) -> int:
     write_atomic(out / 'screen.md', table)
     write_atomic(out / 'screen.csv', to_csv(result))
     pictures = plots(result, out) if result['sequences'] else []
+    if not args.no_video:
+        for seq in sequences:
+            for method in methods:
+                OverlayVideo.commit(out / 'videos' / seq.name / f'{method}.mp4')
     if args.json:
         for row in result['methods']:
             print(json.dumps({'method': row['method'],

@@ -1,0 +1,55 @@
+"""MP4 videos that browsers play: H.264 (yuv420p, index at the front) through PyAV.
+
+OpenCV's pip wheels write MPEG-4 Part 2 ('mp4v'), which no browser plays, and carry no
+H.264 encoder; PyAV's wheels bundle FFmpeg with libx264.
+"""
+from fractions import Fraction
+from pathlib import Path
+
+import av
+import numpy as np
+
+
+class H264Writer:
+    """Writes BGR frames of one size (even width and height) to an H.264 MP4.
+
+    :param path: the file to write (created or truncated).
+    :param fps: frames per second.
+    :param size: (width, height) of every frame.
+    :param crf: x264 quality, 0 (lossless) to 51; 23 is its default.
+    """
+
+    def __init__(self, path: Path, fps: float, size: tuple[int, int], *, crf: int = 23):
+        width, height = size
+        if width % 2 or height % 2:
+            raise ValueError(f'H.264 in yuv420p needs an even frame size, got {size}')
+        # faststart: the index before the data, so a browser starts playing at once
+        self.container = av.open(str(path), mode='w', format='mp4',
+                                 options={'movflags': '+faststart'})
+        try:
+            self.stream = self.container.add_stream(
+                'libx264', rate=Fraction(fps).limit_denominator(1001),
+                options={'crf': str(crf), 'preset': 'veryfast'})
+            self.stream.width, self.stream.height = width, height
+            self.stream.pix_fmt = 'yuv420p'   # what browsers decode
+        except BaseException:
+            self.container.close()
+            raise
+        self.size = (width, height)
+        self.frames = 0
+
+    def write(self, frame: np.ndarray) -> None:
+        """Append one (H, W, 3) uint8 BGR frame."""
+        if frame.shape != (self.size[1], self.size[0], 3):
+            raise ValueError(f'frame of shape {frame.shape}, the video is {self.size}')
+        picture = av.VideoFrame.from_ndarray(frame, format='bgr24')
+        picture.pts = self.frames
+        self.frames += 1
+        self.container.mux(self.stream.encode(picture))
+
+    def close(self) -> None:
+        """Flush the encoder and finish the file."""
+        try:
+            self.container.mux(self.stream.encode(None))
+        finally:
+            self.container.close()
