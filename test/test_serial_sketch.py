@@ -139,16 +139,13 @@ def test_the_link_drives_the_real_sketch(board):
         link.close()
 
 
-def ask(fd, frame: bytes, count=1, timeout=2.0) -> list[protocol.Frame]:
-    os.write(fd, frame)
+def ask(port, frame: bytes, count=1, timeout=2.0) -> list[protocol.Frame]:
+    port.write(frame)
     reader, frames = protocol.FrameReader(), []
     deadline = time.monotonic() + timeout
     while len(frames) < count and time.monotonic() < deadline:
-        if select.select([fd], [], [], 0.05)[0]:
-            try:
-                frames += reader.feed(os.read(fd, 256))
-            except BlockingIOError:
-                pass
+        if select.select([port.fileno()], [], [], 0.05)[0]:
+            frames += reader.feed(port.read(256))
     return frames
 
 
@@ -160,12 +157,12 @@ def ask(fd, frame: bytes, count=1, timeout=2.0) -> list[protocol.Frame]:
     (b'<w,90,90,45,45,90,x>', ['e']), (b'<hello>', ['e']),
     (b'noise<l>', ['ok']), (b'<w,' + b'1' * 60 + b'><l>', ['e', 'ok'])])  # overlong
 def test_the_sketch_answers_each_frame(board, frame, answers):
-    fd = open_serial(board)
+    port = open_serial(board)
     try:
-        frames = ask(fd, frame, count=len(answers))
+        frames = ask(port, frame, count=len(answers))
         assert [f.kind for f in frames] == answers
         if frame.startswith(b'<w,') and answers[0] == 'e':
-            state = ask(fd, b'<r>')[0]
+            state = ask(port, b'<r>')[0]
             assert state.joints == SAFETY_DEG  # a refused target is not taken
     finally:
-        os.close(fd)
+        port.close()

@@ -1,4 +1,4 @@
-"""The serial link to ``braccio_serial.ino``: raw termios on a non-blocking descriptor.
+"""The serial link to ``braccio_serial.ino`` over pyserial, never blocking.
 
 ``BraccioLink.poll(now)`` does a bounded amount of non-blocking I/O and returns at once, so
 a ROS timer can drive it without ever blocking the executor. It opens the port, waits for
@@ -7,52 +7,32 @@ a ROS timer can drive it without ever blocking the executor. It opens the port, 
 is closed and re-opened every ``reconnect_period`` until it answers again.
 """
 from dataclasses import dataclass
-import errno
 import math
-import os
-import termios
 from typing import Sequence
+
+import serial
 
 from activeloc_ros.control import protocol
 from activeloc_ros.control.sim_arm import quantize
 from activeloc_ros.errors import ArmLinkError, ConfigError
 
-_BAUDS = {9600: termios.B9600, 19200: termios.B19200, 38400: termios.B38400,
-          57600: termios.B57600, 115200: termios.B115200}
+BAUDS = (9600, 19200, 38400, 57600, 115200)
 
 
-def open_serial(path: str, baud: int = protocol.BAUD) -> int:
-    """Open ``path`` raw 8N1 at ``baud``, non-blocking; return the descriptor.
+def open_serial(path: str, baud: int = protocol.BAUD) -> serial.Serial:
+    """Open ``path`` raw 8N1 at ``baud`` for this process alone; reads and writes return at
+    once (timeout 0).
 
     Raises ArmLinkError when the port is missing, busy or not a terminal.
     """
-    if baud not in _BAUDS:
-        raise ArmLinkError(f'unsupported baud rate {baud}; use one of {sorted(_BAUDS)}')
+    if baud not in BAUDS:
+        raise ArmLinkError(f'unsupported baud rate {baud}; use one of {list(BAUDS)}')
     try:
-        fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
-    except OSError as exc:
-        raise ArmLinkError(f'cannot open {path}: {exc.strerror}') from exc
-    try:
-        iflag, oflag, cflag, lflag, _, _, cc = termios.tcgetattr(fd)
-        iflag &= ~(termios.IGNBRK | termios.BRKINT | termios.PARMRK | termios.ISTRIP
-                   | termios.INLCR | termios.IGNCR | termios.ICRNL | termios.IXON
-                   | termios.IXOFF | termios.IXANY)
-        oflag &= ~termios.OPOST
-        lflag &= ~(termios.ECHO | termios.ECHONL | termios.ICANON | termios.ISIG
-                   | termios.IEXTEN)
-        cflag &= ~(termios.CSIZE | termios.PARENB | termios.CSTOPB | termios.CRTSCTS)
-        cflag |= termios.CS8 | termios.CREAD | termios.CLOCAL
-        # VMIN=1 with O_NONBLOCK: no data raises EAGAIN, so an empty read means hang-up
-        # (with VMIN=0 Linux returns 0 bytes for both).
-        cc[termios.VMIN] = 1
-        cc[termios.VTIME] = 0
-        speed = _BAUDS[baud]
-        termios.tcsetattr(fd, termios.TCSANOW, [iflag, oflag, cflag, lflag, speed, speed, cc])
-        termios.tcflush(fd, termios.TCIOFLUSH)
-    except (termios.error, OSError) as exc:
-        os.close(fd)
+        return serial.Serial(path, baud, timeout=0, write_timeout=0, exclusive=True)
+    except (serial.SerialException, ValueError) as exc:
+        if getattr(exc, 'errno', None):  # the open itself failed
+            raise ArmLinkError(f'cannot open {path}: {exc.strerror or exc}') from exc
         raise ArmLinkError(f'{path} is not a usable serial port: {exc}') from exc
-    return fd
 
 
 @dataclass
@@ -63,6 +43,7 @@ class LinkStats:
     noise_bytes: int = 0
     bad_frames: int = 0
     rejected: int = 0  # '<e>' answers: the sketch refused one of our frames
+    writes: int = 0    # '<w>' commands sent
     blocked_writes: int = 0
     connects: int = 0
     losses: int = 0
@@ -94,8 +75,8 @@ class BraccioLink:
                             ('handshake_period', handshake_period)):
             if not math.isfinite(value) or value <= 0:
                 raise ConfigError(f'{name} must be > 0 s, got {value}')
-        if baud not in _BAUDS:
-            raise ConfigError(f'unsupported baud rate {baud}; use one of {sorted(_BAUDS)}')
+        if baud not in BAUDS:
+            raise ConfigError(f'unsupported baud rate {baud}; use one of {list(BAUDS)}')
         self.path = path
         self.baud = baud
         self.poll_period = poll_period
@@ -109,7 +90,7 @@ class BraccioLink:
         self.joints: tuple[int, ...] | None = None
         self.joints_time = -math.inf
         self.target: tuple[int, ...] | None = None
-        self._fd: int | None = None
+        self._port: serial.Serial | None = None
         self._reader = protocol.FrameReader()
         self._tx = bytearray()
         self._pending = False
@@ -137,7 +118,7 @@ class BraccioLink:
 
     def fileno(self) -> int | None:
         """The open descriptor (non-blocking), or None while closed."""
-        return self._fd
+        return self._port.fileno() if self._port is not None else None
 
     def fresh(self, now: float) -> bool:
         """True when the echoed state is newer than the silence timeout."""
@@ -148,11 +129,11 @@ class BraccioLink:
     def poll(self, now: float) -> list[str]:
         """Do the pending non-blocking I/O; return descriptions of state changes."""
         events: list[str] = []
-        if self._fd is None:
+        if self._port is None:
             if now < self._next_open:
                 return events
             self._open(now, events)
-            if self._fd is None:
+            if self._port is None:
                 return events
         if not self._read(now, events):
             return events
@@ -167,17 +148,17 @@ class BraccioLink:
         return events
 
     def close(self) -> None:
-        if self._fd is not None:
+        if self._port is not None:
             try:
-                os.close(self._fd)
-            except OSError:
-                pass
-        self._fd = None
+                self._port.close()
+            except (serial.SerialException, OSError):
+                pass  # a vanished device: nothing left to close
+        self._port = None
         self.state = 'closed'
 
     def _open(self, now: float, events: list[str]) -> None:
         try:
-            self._fd = open_serial(self.path, self.baud)
+            self._port = open_serial(self.path, self.baud)
         except ArmLinkError as exc:
             self._next_open = now + self.reconnect_period
             if not self._open_failed:
@@ -207,17 +188,12 @@ class BraccioLink:
         chunks = []
         for _ in range(16):  # bounded: at most 64 KiB per poll
             try:
-                data = os.read(self._fd, 4096)
-            except BlockingIOError:
-                break
-            except OSError as exc:
-                if exc.errno == errno.EINTR:
-                    continue
-                self._lose(now, events, f'port vanished ({exc.strerror})')
+                data = self._port.read(4096)
+            except serial.SerialException as exc:  # unplugged: read fails or hangs up
+                self._lose(now, events, f'port vanished ({exc})')
                 return False
             if not data:
-                self._lose(now, events, 'port hung up')
-                return False
+                break
             chunks.append(data)
         if not chunks:
             return True
@@ -266,6 +242,7 @@ class BraccioLink:
             return
         if self._pending and self.target is not None:
             self._tx += protocol.encode_write(self.target)
+            self.stats.writes += 1
             self._pending = False
             self._write_unanswered = True
         else:
@@ -274,14 +251,14 @@ class BraccioLink:
         self._next_request = now + self.poll_period
 
     def _flush(self, now: float, events: list[str]) -> None:
-        if not self._tx or self._fd is None:
+        if not self._tx or self._port is None:
             return
         try:
-            n = os.write(self._fd, bytes(self._tx))
-        except BlockingIOError:
+            n = self._port.write(bytes(self._tx))
+        except serial.SerialTimeoutException:  # the output buffer is full: try next poll
             self.stats.blocked_writes += 1
             return
-        except OSError as exc:
-            self._lose(now, events, f'port vanished ({exc.strerror})')
+        except serial.SerialException as exc:
+            self._lose(now, events, f'port vanished ({exc})')
             return
         del self._tx[:n]
