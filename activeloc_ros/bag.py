@@ -3,24 +3,36 @@
 Reading uses the `mcap` library directly, so both a rosbag2 folder (metadata.yaml + .mcap)
 and a bare .mcap file work; writing uses `rosbags`, which writes the rosbag2 metadata that
 `ros2 bag info` and `rosbags` read back. No ROS install is needed for any of it.
+A bag whose writer died (killed, disk full) has no index and no metadata.yaml; `reindex`
+keeps its complete chunks and writes both, as `ros2 bag reindex` does.
 
     python -m activeloc_ros.bag info PATH
+    python -m activeloc_ros.bag reindex PATH
     python -m activeloc_ros.bag make-sample [--video FILE] [--out DIR]
 """
 import argparse
 from dataclasses import dataclass, field
+from io import BytesIO
+import os
 from pathlib import Path
 import shutil
+import struct
 import subprocess
 import sys
 import tempfile
-from typing import Iterator
+from typing import Callable, Iterator
 
+from mcap.data_stream import ReadDataStream, RecordBuilder
 from mcap.exceptions import McapError
+from mcap.opcode import Opcode
 from mcap.reader import make_reader
+from mcap.records import (
+    Channel, Chunk, ChunkIndex, DataEnd, Footer, MessageIndex, Metadata, MetadataIndex, Schema,
+    Statistics, SummaryOffset)
+from mcap.stream_reader import get_chunk_data_stream
 import numpy as np
 
-from activeloc_ros.errors import SourceError
+from activeloc_ros.errors import ActivelocError, SourceError
 from activeloc_ros.paths import file_sha256
 
 IMAGE_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage')
@@ -143,18 +155,37 @@ def read_messages(path: Path, topics: list[str]) -> Iterator[tuple[str, str, int
                 f'cannot read bag file {file}: {type(exc).__name__}: {exc}') from exc
 
 
-class BagWriter:
-    """Write CDR messages to a rosbag2 MCAP bag (a folder with metadata.yaml)."""
+class RecordingError(ActivelocError):
+    """A bag could not be written (disk full, read-only, path under a file...)."""
 
-    def __init__(self, path: Path):
+
+class BagWriter:
+    """Write CDR messages to a rosbag2 MCAP bag (a folder with metadata.yaml).
+
+    A write error (a full disk...) ends the recording, not the program: the bag is cut back
+    to its last complete chunk and indexed, so it reads up to the error, and RecordingError
+    says what happened. Every later write is refused with the same error.
+
+    :param wrap_stream: wraps the open .mcap file object (tests: a disk that fills up).
+    """
+
+    def __init__(self, path: Path, *, wrap_stream: Callable | None = None):
         from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.rosbag2.errors import WriterError
         self.path = Path(path)
         if self.path.exists():
             raise SourceError(f'will not overwrite existing bag {self.path}')
         self._store = _typestore()
         self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
-        self._writer.open()
+        try:
+            self._writer.open()
+        except (OSError, WriterError) as exc:
+            raise RecordingError(f'cannot create bag {self.path}: {exc}') from exc
+        if wrap_stream is not None:
+            self._writer.storage.bio = wrap_stream(self._writer.storage.bio)
         self._connections: dict[str, object] = {}
+        self.error: RecordingError | None = None
+        self.closed = False
 
     def add_topic(self, topic: str, msgtype: str) -> None:
         if topic not in self._connections:
@@ -162,7 +193,13 @@ class BagWriter:
                 topic, msgtype, typestore=self._store)
 
     def write_cdr(self, topic: str, stamp_ns: int, data: bytes) -> None:
-        self._writer.write(self._connections[topic], stamp_ns, data)
+        if self.error is not None:
+            raise self.error
+        try:
+            self._writer.write(self._connections[topic], stamp_ns, data)
+        except OSError as exc:
+            self._fail(exc)
+            raise self.error from exc
 
     def write(self, topic: str, msgtype: str, stamp_ns: int, message) -> None:
         """Write a rosbags-typestore message object."""
@@ -174,7 +211,292 @@ class BagWriter:
         return self._store
 
     def close(self) -> None:
-        self._writer.close()
+        """Finish the bag (index, metadata.yaml). Raises RecordingError if it could not be
+        finished as written; the bag then holds what reached the disk before the error."""
+        if self.closed:
+            if self.error is not None:
+                raise self.error
+            return
+        try:
+            self._writer.close()
+            self.closed = True
+        except OSError as exc:
+            self._fail(exc)
+            raise self.error from exc
+
+    def _fail(self, exc: OSError) -> None:
+        """Stop writing; keep what is on disk up to the last complete chunk, indexed."""
+        self.closed = True
+        try:
+            self._writer.abort()        # closes the file; flushing what is buffered may fail
+        except OSError:
+            pass
+        problem = f'writing bag {self.path} failed: {exc.strerror or exc}'
+        try:
+            report = reindex(self.path)
+        except (OSError, SourceError) as again:
+            self.error = RecordingError(
+                f'{problem}; it could not be closed either ({again}): run '
+                f'`python -m activeloc_ros.bag reindex {self.path}` once there is room')
+        else:
+            self.error = RecordingError(f'{problem}; the bag was closed at the last complete '
+                                        f'chunk and holds {report.messages} messages')
+
+
+# --- Recovering a bag whose writer died -------------------------------------------------
+MAGIC = b'\x89MCAP0\r\n'
+_RECORD_HEAD = struct.Struct('<BQ')      # opcode, length
+_MESSAGE_HEAD = struct.Struct('<HIQQ')   # channel id, sequence, log time, publish time
+
+
+@dataclass
+class _ChunkScan:
+    index: ChunkIndex
+    messages: dict[int, list[tuple[int, int]]]     # channel id -> [(log time, offset)]
+
+
+@dataclass
+class McapScan:
+    """What a sequential read of an .mcap file found before its end or its first damage."""
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    channels: dict[int, Channel] = field(default_factory=dict)
+    chunks: list[_ChunkScan] = field(default_factory=list)
+    metadata: list[MetadataIndex] = field(default_factory=list)
+    counts: dict[int, int] = field(default_factory=dict)
+    start_ns: int | None = None
+    end_ns: int | None = None
+    keep_bytes: int = len(MAGIC)    # the sound prefix: complete records only
+    reindex_last: bool = False      # the newest chunk's message indexes are written again
+
+
+def _scan_chunk(record: Chunk, start: int, length: int, scan: McapScan) -> _ChunkScan:
+    stream, size = get_chunk_data_stream(record)
+    data = stream.read(size)
+    messages: dict[int, list[tuple[int, int]]] = {}
+    pos = 0
+    while pos + _RECORD_HEAD.size <= size:
+        opcode, body_len = _RECORD_HEAD.unpack_from(data, pos)
+        body = data[pos + _RECORD_HEAD.size:pos + _RECORD_HEAD.size + body_len]
+        if len(body) != body_len:
+            raise McapError('record runs past the end of its chunk')
+        if opcode == Opcode.SCHEMA:
+            schema = Schema.read(ReadDataStream(BytesIO(body)))
+            scan.schemas[schema.id] = schema
+        elif opcode == Opcode.CHANNEL:
+            channel = Channel.read(ReadDataStream(BytesIO(body)))
+            scan.channels[channel.id] = channel
+        elif opcode == Opcode.MESSAGE:
+            channel_id, _, log_time, _ = _MESSAGE_HEAD.unpack_from(body)
+            messages.setdefault(channel_id, []).append((log_time, pos))
+        pos += _RECORD_HEAD.size + body_len
+    index = ChunkIndex(chunk_length=length, chunk_start_offset=start,
+                       compression=record.compression, compressed_size=len(record.data),
+                       message_end_time=record.message_end_time, message_index_length=0,
+                       message_index_offsets={}, message_start_time=record.message_start_time,
+                       uncompressed_size=record.uncompressed_size)
+    return _ChunkScan(index, messages)
+
+
+def scan_mcap(file: Path) -> McapScan:
+    """Read `file` record by record up to its data section's end, or to the first record
+    that is incomplete or damaged; collect what an index of the sound part needs."""
+    scan = McapScan()
+    size = file.stat().st_size
+    open_run = False    # the newest chunk's message indexes may still be cut short
+    with open(file, 'rb') as stream:
+        if stream.read(len(MAGIC)) != MAGIC:
+            raise SourceError(f'not an MCAP file (bad magic): {file}')
+        pos = len(MAGIC)
+        while pos + _RECORD_HEAD.size <= size:
+            stream.seek(pos)
+            opcode, length = _RECORD_HEAD.unpack(stream.read(_RECORD_HEAD.size))
+            end = pos + _RECORD_HEAD.size + length
+            if end > size or opcode in (Opcode.DATA_END, Opcode.FOOTER):
+                break
+            body = stream.read(length)
+            try:
+                if opcode == Opcode.CHUNK:
+                    chunk = _scan_chunk(Chunk.read(ReadDataStream(BytesIO(body))), pos,
+                                        end - pos, scan)
+                    scan.chunks.append(chunk)
+                elif opcode == Opcode.MESSAGE_INDEX and scan.chunks:
+                    channel_id = struct.unpack_from('<H', body)[0]
+                    index = scan.chunks[-1].index
+                    index.message_index_offsets[channel_id] = pos
+                    index.message_index_length += end - pos
+                elif opcode == Opcode.SCHEMA:
+                    schema = Schema.read(ReadDataStream(BytesIO(body)))
+                    scan.schemas[schema.id] = schema
+                elif opcode == Opcode.CHANNEL:
+                    channel = Channel.read(ReadDataStream(BytesIO(body)))
+                    scan.channels[channel.id] = channel
+                elif opcode == Opcode.METADATA:
+                    name = Metadata.read(ReadDataStream(BytesIO(body))).name
+                    scan.metadata.append(MetadataIndex(offset=pos, length=end - pos, name=name))
+                elif opcode not in (Opcode.HEADER, Opcode.ATTACHMENT):
+                    break       # a summary record: the data section ended
+            except (McapError, struct.error, ValueError, KeyError, EOFError):
+                break           # a damaged record ends the sound part, as truncation does
+            open_run = opcode in (Opcode.CHUNK, Opcode.MESSAGE_INDEX)
+            pos = scan.keep_bytes = end
+    if open_run:
+        # keep the newest chunk, write its message indexes again after it
+        last = scan.chunks[-1].index
+        scan.keep_bytes = last.chunk_start_offset + last.chunk_length
+        last.message_index_offsets, last.message_index_length = {}, 0
+        scan.reindex_last = True
+    times = [t for chunk in scan.chunks for entries in chunk.messages.values()
+             for t, _ in entries]
+    if times:
+        scan.start_ns, scan.end_ns = min(times), max(times)
+    for chunk in scan.chunks:
+        for channel_id, entries in chunk.messages.items():
+            scan.counts[channel_id] = scan.counts.get(channel_id, 0) + len(entries)
+    return scan
+
+
+def _bag_info_yaml(files: list[tuple[Path, McapScan]], version: int = 9) -> dict:
+    """rosbag2's bagfile information for the scanned files (what metadata.yaml holds)."""
+    import yaml
+    store = _typestore()
+    topics: dict[tuple[str, str], dict] = {}
+    for _, scan in files:
+        for channel_id, channel in scan.channels.items():
+            schema = scan.schemas.get(channel.schema_id)
+            msgtype = schema.name if schema else ''
+            entry = topics.setdefault((channel.topic, msgtype), {'count': 0,
+                                                                  'channel': channel})
+            entry['count'] += scan.counts.get(channel_id, 0)
+    described = []
+    for (topic, msgtype), entry in topics.items():
+        qos = entry['channel'].metadata.get('offered_qos_profiles', '')
+        try:
+            digest = store.hash_rihs01(msgtype)
+        except (KeyError, ValueError):
+            digest = ''
+        described.append({'topic_metadata': {
+            'name': topic, 'type': msgtype,
+            'serialization_format': entry['channel'].message_encoding,
+            'offered_qos_profiles': (yaml.safe_load(qos) or []) if version >= 9 else qos,
+            'type_description_hash': digest}, 'message_count': entry['count']})
+    starts = [scan.start_ns for _, scan in files if scan.start_ns is not None]
+    ends = [scan.end_ns for _, scan in files if scan.end_ns is not None]
+    start, end = (min(starts), max(ends)) if starts else (0, 0)
+    return {
+        'version': version, 'storage_identifier': 'mcap',
+        'relative_file_paths': [file.name for file, _ in files],
+        'duration': {'nanoseconds': end - start},
+        'starting_time': {'nanoseconds_since_epoch': start},
+        'message_count': sum(sum(scan.counts.values()) for _, scan in files),
+        'topics_with_message_count': described,
+        'compression_format': '', 'compression_mode': '',
+        'files': [{'path': file.name,
+                   'starting_time': {'nanoseconds_since_epoch': scan.start_ns or 0},
+                   'duration': {'nanoseconds': (scan.end_ns or 0) - (scan.start_ns or 0)},
+                   'message_count': sum(scan.counts.values())} for file, scan in files],
+        'custom_data': None, 'ros_distro': 'rosbags',
+    }
+
+
+def _append_index(file: Path, scan: McapScan, info_yaml: str) -> None:
+    """Cut `file` to its sound part, then append the newest chunk's message indexes,
+    rosbag2's metadata record, the summary and the footer."""
+    base = scan.keep_bytes
+    out = RecordBuilder()
+    if scan.reindex_last:
+        last = scan.chunks[-1]
+        for channel_id, entries in sorted(last.messages.items()):
+            last.index.message_index_offsets[channel_id] = base + out.count
+            MessageIndex(channel_id=channel_id, records=entries).write(out)
+        last.index.message_index_length = out.count
+    metadata = list(scan.metadata)
+    if not any(m.name == 'rosbag2' for m in metadata):
+        start = base + out.count
+        Metadata(name='rosbag2', metadata={'serialized_metadata': info_yaml}).write(out)
+        metadata.append(MetadataIndex(offset=start, length=base + out.count - start,
+                                      name='rosbag2'))
+    DataEnd(data_section_crc=0).write(out)
+    summary_start = base + out.count
+    groups = []
+
+    def group(opcode, records):
+        start = out.count
+        for record in records:
+            record.write(out)
+        if out.count > start:
+            groups.append(SummaryOffset(group_opcode=opcode, group_start=base + start,
+                                        group_length=out.count - start))
+
+    group(Opcode.SCHEMA, [scan.schemas[k] for k in sorted(scan.schemas)])
+    group(Opcode.CHANNEL, [scan.channels[k] for k in sorted(scan.channels)])
+    group(Opcode.CHUNK_INDEX, [chunk.index for chunk in scan.chunks])
+    group(Opcode.METADATA_INDEX, metadata)
+    group(Opcode.STATISTICS, [Statistics(
+        attachment_count=0, channel_count=len(scan.channels),
+        channel_message_counts=dict(sorted(scan.counts.items())), chunk_count=len(scan.chunks),
+        message_count=sum(scan.counts.values()), message_end_time=scan.end_ns or 0,
+        message_start_time=scan.start_ns or 0, metadata_count=len(metadata),
+        schema_count=len(scan.schemas))])
+    offsets_start = base + out.count
+    for offset in groups:
+        offset.write(out)
+    Footer(summary_start=summary_start, summary_offset_start=offsets_start,
+           summary_crc=0).write(out)
+    with open(file, 'r+b') as stream:
+        stream.truncate(base)
+        stream.seek(base)
+        stream.write(out.end() + MAGIC)
+        stream.flush()
+        os.fsync(stream.fileno())
+
+
+def _indexed(file: Path) -> bool:
+    """Whether `file` ends in a summary and footer that a reader can use."""
+    try:
+        with open(file, 'rb') as stream:
+            summary = make_reader(stream).get_summary()
+        return summary is not None and summary.statistics is not None
+    except READER_ERRORS:
+        return False
+
+
+@dataclass
+class ReindexReport:
+    messages: int
+    lines: list[str]
+
+
+def reindex(path: Path) -> ReindexReport:
+    """Make a bag readable again after its writer died: each .mcap file without an index is
+    cut back to its last complete chunk and indexed; metadata.yaml is written anew.
+
+    Like `ros2 bag reindex`, it works in place. Raises SourceError if `path` holds no
+    MCAP file, OSError if a file cannot be rewritten.
+    """
+    import yaml
+    path = Path(path)
+    files, lines = [], []
+    for file in mcap_files(path):
+        scan = scan_mcap(file)
+        count = sum(scan.counts.values())
+        if _indexed(file):
+            lines.append(f'{file.name}: complete, {count} messages')
+        else:
+            dropped = file.stat().st_size - scan.keep_bytes
+            lines.append(f'{file.name}: no index; kept {len(scan.chunks)} complete chunks, '
+                         f'{count} messages'
+                         + (f'; dropped {dropped} bytes of an incomplete record'
+                            if dropped else ''))
+            info = _bag_info_yaml([(file, scan)])
+            _append_index(file, scan, yaml.safe_dump(info, sort_keys=False).strip())
+        files.append((file, scan))
+    if path.is_dir():
+        info = {'rosbag2_bagfile_information': _bag_info_yaml(files)}
+        tmp = path / 'metadata.yaml.tmp'
+        tmp.write_text(yaml.safe_dump(info, sort_keys=False))
+        tmp.replace(path / 'metadata.yaml')
+        lines.append('metadata.yaml written')
+    return ReindexReport(sum(sum(scan.counts.values()) for _, scan in files), lines)
 
 
 def format_facts(facts: BagFacts) -> str:
@@ -273,6 +595,11 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest='command', required=True)
     info = sub.add_parser('info', help='print the facts of a bag (like `ros2 bag info`)')
     info.add_argument('path', type=Path)
+    fix = sub.add_parser(
+        'reindex', help='make a bag whose recording was cut off (killed, disk full) readable: '
+        'keep every complete chunk, write the index and metadata.yaml (in place, like '
+        '`ros2 bag reindex`)')
+    fix.add_argument('path', type=Path, help='rosbag2 folder or .mcap file')
     sample = sub.add_parser('make-sample', help='(re)make the bundled sample bag')
     sample.add_argument('--video', type=Path,
                         help='source video (default: vtest.avi from Debian opencv-doc)')
@@ -285,6 +612,11 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == 'info':
             print(format_facts(bag_facts(args.path)))
             return 0
+        if args.command == 'reindex':
+            report = reindex(args.path)
+            print('\n'.join(report.lines))
+            print(format_facts(bag_facts(args.path)))
+            return 0
         with tempfile.TemporaryDirectory() as workdir:
             video = args.video
             if video is None:
@@ -294,6 +626,9 @@ def main(argv: list[str] | None = None) -> int:
         print(format_facts(facts))
         return 0
     except SourceError as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 1
+    except OSError as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
 

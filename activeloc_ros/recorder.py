@@ -2,16 +2,27 @@
 
 It discovers topics as they appear and subscribes to each with raw (CDR) callbacks, so
 messages go to the bag as they travelled, with no conversion. Used by `bringup --record`.
+In a namespace (`--ros-args -r __ns:=/robot1`) it records that namespace's topics only,
+so robots that share a network keep their bags apart.
+
+Every message counts: each subscription keeps a deep queue (the perception's depth 1 is for
+perception, which wants the newest frame) and is reliable unless a publisher offers only
+best effort, which a reliable subscription would not hear. A write error (a full disk)
+ends the recording, not the graph: the bag is closed at its last complete chunk, `error`
+says what happened and bringup stops the run with that reason.
 """
 import importlib
 from pathlib import Path
+import threading
 
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-from activeloc_ros.bag import BagWriter
+from activeloc_ros.bag import BagWriter, RecordingError
+from activeloc_ros.qos import offered_reliability
 
 IGNORED = ('/rosout', '/parameter_events')
+QUEUE_DEPTH = 100       # messages a subscription holds while the writer is busy
 
 
 def message_class(msgtype: str):
@@ -19,35 +30,71 @@ def message_class(msgtype: str):
     return getattr(importlib.import_module(f'{package}.{kind}'), name)
 
 
+def in_namespace(topic: str, namespace: str) -> bool:
+    return namespace == '/' or topic.startswith(namespace.rstrip('/') + '/')
+
+
 class RecorderNode(Node):
-    def __init__(self, path: Path, **kwargs):
+    """:param expected: topics (name -> type) subscribed at once, reliably, before their
+        publishers exist, so that not even their first message is missed; other topics are
+        found as they appear."""
+
+    def __init__(self, path: Path, *, expected: dict[str, str] | None = None,
+                 wrap_stream=None, **kwargs):
         super().__init__('recorder', **kwargs)
-        self.writer = BagWriter(path)
         self.path = Path(path)
+        self.writer = BagWriter(self.path, wrap_stream=wrap_stream)
+        self.lock = threading.Lock()     # callbacks and close() come from different threads
         self.counts: dict[str, int] = {}
         self.subs = {}
+        self.error: RecordingError | None = None
+        for name, msgtype in (expected or {}).items():
+            self.subscribe(self.resolve_topic_name(name), msgtype, ReliabilityPolicy.RELIABLE)
         self.timer = self.create_timer(0.25, self.discover)
         self.get_logger().info(f'recording to {path}')
 
     def discover(self) -> None:
         for topic, types in self.get_topic_names_and_types():
-            if topic in self.subs or topic in IGNORED or not types:
+            if (topic in self.subs or topic in IGNORED or not types
+                    or not in_namespace(topic, self.get_namespace())):
                 continue
-            try:
-                cls = message_class(types[0])
-            except (ImportError, AttributeError, ValueError):
-                self.get_logger().warning(f'cannot record {topic}: unknown type {types[0]}')
-                self.subs[topic] = None
-                continue
-            self.writer.add_topic(topic, types[0])
+            self.subscribe(topic, types[0], offered_reliability(self, topic))
+
+    def subscribe(self, topic: str, msgtype: str, reliability: ReliabilityPolicy) -> None:
+        try:
+            cls = message_class(msgtype)
+        except (ImportError, AttributeError, ValueError):
+            self.get_logger().warning(f'cannot record {topic}: unknown type {msgtype}')
+            self.subs[topic] = None
+            return
+        with self.lock:
+            if self.error is not None or self.writer.closed:
+                return
+            self.writer.add_topic(topic, msgtype)
             self.counts[topic] = 0
-            qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
-            self.subs[topic] = self.create_subscription(
-                cls, topic, lambda data, topic=topic: self.on_message(topic, data), qos, raw=True)
+        self.subs[topic] = self.create_subscription(
+            cls, topic, lambda data, topic=topic: self.on_message(topic, data),
+            QoSProfile(depth=QUEUE_DEPTH, reliability=reliability), raw=True)
 
     def on_message(self, topic: str, data: bytes) -> None:
-        self.writer.write_cdr(topic, self.get_clock().now().nanoseconds, data)
-        self.counts[topic] += 1
+        with self.lock:
+            if self.error is not None or self.writer.closed:
+                return
+            try:
+                self.writer.write_cdr(topic, self.get_clock().now().nanoseconds, data)
+            except RecordingError as exc:
+                self.error = exc
+                self.get_logger().error(str(exc))
+                return
+            self.counts[topic] += 1
 
     def close(self) -> None:
-        self.writer.close()
+        """Finish the bag; a failure is kept in `error`, not raised."""
+        with self.lock:
+            if self.error is not None:
+                return
+            try:
+                self.writer.close()
+            except RecordingError as exc:
+                self.error = exc
+                self.get_logger().error(str(exc))

@@ -1,0 +1,99 @@
+"""Recordings survive what ends them: a full disk, a killed writer (`bag reindex`)."""
+import errno
+import subprocess
+import sys
+
+import pytest
+
+from activeloc_ros.bag import BagWriter, bag_facts, reindex, RecordingError
+from conftest import REPO
+
+PAYLOAD = 100_000          # bytes a message: about ten to a 1 MiB chunk
+
+
+def write_bag(path, count, *, wrap_stream=None):
+    """A bag of `count` String messages of PAYLOAD bytes; returns how many were written."""
+    writer = BagWriter(path, wrap_stream=wrap_stream)
+    String = writer.store.types['std_msgs/msg/String']
+    written = 0
+    try:
+        for i in range(count):
+            writer.write('/big', 'std_msgs/msg/String', 1000 + i, String(data='x' * PAYLOAD))
+            written += 1
+    finally:
+        try:
+            writer.close()
+        except RecordingError:
+            pass
+    return written, writer
+
+
+def message_count(path) -> int:
+    from rosbags.highlevel import AnyReader
+    with AnyReader([path]) as reader:
+        return sum(1 for _ in reader.messages())
+
+
+class FillsUp:
+    """A file object whose disk is full after `room` bytes."""
+
+    def __init__(self, stream, room):
+        self.stream, self.room = stream, room
+
+    def write(self, data):
+        if self.stream.tell() + len(data) > self.room:
+            raise OSError(errno.ENOSPC, 'No space left on device')
+        return self.stream.write(data)
+
+    def __getattr__(self, name):
+        return getattr(self.stream, name)
+
+
+def test_a_full_disk_closes_the_bag_readable_up_to_the_error(tmp_path):
+    path = tmp_path / 'bag'
+    with pytest.raises(RecordingError, match='No space left'):
+        write_bag(path, 60, wrap_stream=lambda s: FillsUp(s, 3_500_000))
+    kept = message_count(path)          # metadata.yaml and the index were written
+    assert 20 <= kept < 60
+    assert [(t.name, t.count) for t in bag_facts(path).topics] == [('/big', kept)]
+
+
+@pytest.mark.parametrize('cut', [0.5, 0.77, 1.0])
+def test_reindex_recovers_every_complete_chunk_of_a_killed_recording(tmp_path, cut):
+    whole = tmp_path / 'whole'
+    write_bag(whole, 45)
+    data = (whole / 'whole.mcap').read_bytes()
+    # what a SIGKILL leaves: the data section up to some byte, no summary, no metadata.yaml
+    killed = tmp_path / 'killed'
+    killed.mkdir()
+    footer = data[-8 - 29:-8]                 # opcode, length, summary_start, ...
+    data_end = int.from_bytes(footer[9:17], 'little') - 13     # the DataEnd record
+    (killed / 'killed.mcap').write_bytes(data[:int(min(cut * len(data), data_end))])
+    with pytest.raises(Exception):
+        message_count(killed)
+    report = reindex(killed)
+    assert (killed / 'metadata.yaml').is_file()
+    recovered = message_count(killed)
+    assert recovered == report.messages
+    assert recovered >= int(cut * 45) - 12     # at most the chunk being written is lost
+    assert recovered <= 45
+
+
+def test_reindex_cli_leaves_a_complete_bag_as_it_was(tmp_path):
+    path = tmp_path / 'ok'
+    write_bag(path, 3)
+    before = (path / 'ok.mcap').read_bytes()
+    done = subprocess.run([sys.executable, '-m', 'activeloc_ros.bag', 'reindex', str(path)],
+                          capture_output=True, text=True, cwd=REPO, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert 'complete, 3 messages' in done.stdout
+    assert (path / 'ok.mcap').read_bytes() == before
+    assert message_count(path) == 3
+
+
+def test_reindex_refuses_what_is_not_a_bag(tmp_path):
+    (tmp_path / 'x.mcap').write_bytes(b'not an mcap file at all')
+    done = subprocess.run([sys.executable, '-m', 'activeloc_ros.bag', 'reindex',
+                           str(tmp_path / 'x.mcap')], capture_output=True, text=True, cwd=REPO,
+                          timeout=60)
+    assert done.returncode == 1 and 'not an MCAP file' in done.stderr
