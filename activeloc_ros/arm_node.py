@@ -10,12 +10,19 @@ On a simulated clock (``use_sim_time``, sim back end only) the arm moves with ``
 it answers every clock message with its state at that time and every command with its
 state once applied, and publishes nothing on a timer, so a lockstep camera can count the
 answers (``activeloc_ros.lockstep``). Its clock starts at 0, as in ``closed_loop``.
+
+Any command a topic can carry is safe: a malformed one (unknown or repeated names, lengths
+that differ, a position that is not a finite angle in degrees, such as 1e308 rad) is logged
+(throttled) and ignored, one outside the joint limits is clamped. ``/diagnostics`` tells the
+link's health once a second. A serial link down for ``give_up_timeout`` (never connected,
+or lost and not back) ends the node with an error and exit code 1.
 """
 import math
 import threading
 import time
 
 from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
@@ -24,7 +31,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 
-from activeloc_ros.checks import in_range, one_of, positive
+from activeloc_ros.checks import in_range, non_negative, one_of, positive
 from activeloc_ros.control import clamp_to_limits, pose_problem, JOINT_NAMES, SimArm
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.serial_link import BraccioLink
@@ -34,14 +41,17 @@ from activeloc_ros.ros_params import declare, Param, run
 HOME = [90, 90, 45, 45, 90, 73]
 
 
+# Set at run time, a parameter applies at once, except those that fix the hardware or the
+# start (read-only).
 PARAMS = (
     Param('backend', 'sim', "'sim': simulated servos; 'serial': the Arduino sketch",
           one_of('sim', 'serial'), read_only=True),
     Param('state_rate', 50.0, 'joint_states publishing rate, Hz', in_range(1.0, 500.0)),
     Param('step_delay_ms', 20, 'Servo step delay, ms per degree (sim; must match the sketch)',
-          in_range(*STEP_DELAY_MS_RANGE)),
+          in_range(*STEP_DELAY_MS_RANGE), read_only=True),
     Param('home_deg', HOME, 'Home pose, degrees', pose_problem),
-    Param('sim_start_deg', HOME, 'Pose the simulated arm starts in, degrees', pose_problem),
+    Param('sim_start_deg', HOME, 'Pose the simulated arm starts in, degrees', pose_problem,
+          read_only=True),
     Param('stop_mode', 'hold', "On shutdown: 'hold' stops where it is, 'home' goes home "
           'slowly', one_of('hold', 'home')),
     Param('home_speed_deg_s', 15.0, 'Joint speed when going home at shutdown, deg/s',
@@ -51,30 +61,38 @@ PARAMS = (
           '/dev/serial/by-id/...)', read_only=True),
     Param('baud', 115200, 'Serial baud rate', one_of(9600, 19200, 38400, 57600, 115200),
           read_only=True),
-    Param('poll_period', 0.02, 'Seconds between serial requests', in_range(0.005, 1.0)),
+    Param('poll_period', 0.02, 'Seconds between serial requests', in_range(0.005, 1.0),
+          read_only=True),
     Param('silence_timeout', 1.0, 'No valid frame for this long: the link is lost, s',
           positive),
     Param('reconnect_period', 1.0, 'Seconds between attempts to re-open the port', positive),
     Param('handshake_timeout', 4.0, 'Seconds to wait for <ok> after opening (the Arduino '
           'resets on open)', positive),
+    Param('give_up_timeout', 10.0, 'The serial link down this long (never connected, or lost '
+          'and not back): the node ends with an error, s (0: retry for ever)', non_negative),
 )
+LINK_TIMES = ('silence_timeout', 'reconnect_period', 'handshake_timeout')
 
 
-def parse_command(msg: JointState, current: tuple[float, ...]) -> tuple[float, ...] | None:
+def parse_command(msg: JointState, current: tuple[float, ...]
+                  ) -> tuple[tuple[float, ...] | None, str]:
     """Six target angles in degrees from a JointState (radians, any subset of the joints by
-    name, or all six in order without names); None when malformed or not finite."""
-    if not msg.name:
-        if len(msg.position) != len(JOINT_NAMES):
-            return None
-        radians = dict(zip(JOINT_NAMES, msg.position))
-    else:
-        if len(msg.name) != len(msg.position) or any(n not in JOINT_NAMES for n in msg.name):
-            return None
-        radians = dict(zip(msg.name, msg.position))
-    if not all(math.isfinite(r) for r in radians.values()):
-        return None
-    return tuple(math.degrees(radians[n]) if n in radians else q
-                 for n, q in zip(JOINT_NAMES, current))
+    name, or all six in order without names), or None and why it is malformed."""
+    names = list(msg.name) if msg.name else list(JOINT_NAMES)
+    positions = list(msg.position)
+    if len(names) != len(positions):
+        return None, (f'{len(msg.name)} names for {len(positions)} positions' if msg.name
+                      else f'{len(positions)} positions without names (need {len(names)})')
+    unknown = [n for n in names if n not in JOINT_NAMES]
+    if unknown:
+        return None, f'unknown joints {unknown[:3]} (joints are {list(JOINT_NAMES)})'
+    if len(set(names)) != len(names):
+        return None, f'joints named twice in {names}'
+    degrees = {n: math.degrees(r) for n, r in zip(names, positions)}  # 1e308 rad: inf deg
+    bad = {n: r for n, r in zip(names, positions) if not math.isfinite(degrees[n])}
+    if bad:
+        return None, 'not a finite angle: ' + ', '.join(f'{n} {r!r} rad' for n, r in bad.items())
+    return tuple(degrees.get(n, q) for n, q in zip(JOINT_NAMES, current)), ''
 
 
 def ramp(current, goal, max_step: float) -> tuple[float, ...]:
@@ -87,7 +105,9 @@ class ArmNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('arm', **kwargs)
-        values = declare(self, PARAMS)
+        values = declare(self, PARAMS, cli_args=kwargs.get('cli_args'),
+                         use_global_arguments=kwargs.get('use_global_arguments', True),
+                         on_change=self.on_parameters)
         self.values = values
         self.backend = values['backend']
         self.home = tuple(float(q) for q in values['home_deg'])
@@ -98,6 +118,10 @@ class ArmNode(Node):
         self._stop_pose: tuple[float, ...] | None = None
         self._stop_t = 0.0
         self._problems_logged = 0
+        self.failure: str | None = None   # why the node cannot go on (run() exits 1)
+        self.finished = False
+        self._down_since = time.monotonic()
+        self._last_link_event = ''
         self._lock = threading.RLock()  # stop_on_purpose may come from another thread
         self._stopped = threading.Event()
         self.sim_time = self.get_parameter('use_sim_time').value
@@ -123,9 +147,12 @@ class ArmNode(Node):
                                  QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
         # on a simulated clock the timer only serves stopping, which must not wait for time
         # that stands still between clock ticks
-        self.create_timer(1.0 / values['state_rate'], self.on_state_timer,
-                          clock=Clock(clock_type=ClockType.STEADY_TIME) if self.sim_time
-                          else None)
+        self.state_timer = self.create_timer(
+            1.0 / values['state_rate'], self.on_state_timer,
+            clock=Clock(clock_type=ClockType.STEADY_TIME) if self.sim_time else None)
+        self.diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.create_timer(1.0, self.publish_diagnostics,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
         if self.sim_time:
             self.create_subscription(
                 ClockMsg, '/clock', self.on_clock,
@@ -133,6 +160,19 @@ class ArmNode(Node):
         where = values['port'] if self.link else 'simulation'
         self.get_logger().info(f'Braccio arm ({self.backend}: {where}), stop mode '
                                f'{values["stop_mode"]}')
+
+    def on_parameters(self, values: dict, changed: set) -> None:
+        """A run-time change (validated): stop settings are read when stopping; the rate
+        and the link's timeouts change at once."""
+        with self._lock:
+            self.values = values
+            self.home = tuple(float(q) for q in values['home_deg'])
+            self.state_timer.timer_period_ns = int(1e9 / values['state_rate'])
+            if self.link is not None:
+                for name in LINK_TIMES:
+                    setattr(self.link, name, values[name])
+        self.get_logger().info('set at run time: ' + ', '.join(
+            f'{name} {values[name]!r}' for name in sorted(changed)))
 
     def _now(self) -> float:
         if self._tick_ns is not None:
@@ -173,11 +213,11 @@ class ArmNode(Node):
     def _on_command(self, msg: JointState) -> None:
         if self.stopping:
             return
-        target = parse_command(msg, self._target())
+        target, why = parse_command(msg, self._target())
         if target is None:
             self.rejected += 1
-            self.get_logger().warning(f'rejected malformed joint commands ({self.rejected} so '
-                                      'far)', throttle_duration_sec=5.0)
+            self.get_logger().warning(f'ignored a malformed joint command: {why} '
+                                      f'({self.rejected} so far)', throttle_duration_sec=5.0)
             return
         safe = clamp_to_limits(target)
         if safe != target:
@@ -202,6 +242,8 @@ class ArmNode(Node):
             events = self.link.poll(time.monotonic())
         for event in events:
             self.get_logger().info(event)
+            self._last_link_event = event
+        self._watch_link(time.monotonic())
         problems = self.link.stats.problems
         if problems != self._problems_logged:
             self._problems_logged = problems
@@ -210,6 +252,52 @@ class ArmNode(Node):
                 f'serial link: ignored {s.noise_bytes} noise bytes, {s.bad_frames} bad '
                 f'frames, {s.rejected} refused commands (last: {s.last_bad or "-"})',
                 throttle_duration_sec=5.0)
+
+    def _watch_link(self, now: float) -> None:
+        """End the node with an error once the link has been down for give_up_timeout."""
+        if self.link.state == 'connected':
+            self._down_since = None
+            return
+        if self._down_since is None:
+            self._down_since = now
+        limit = self.values['give_up_timeout']
+        if self.failure is None and limit > 0 and now - self._down_since > limit:
+            ever = self.link.stats.connects > 0
+            self.failure = (f'serial link to the arm on {self.link.path} '
+                            + ('lost' if ever else 'never connected')
+                            + f' for {limit:g} s (give_up_timeout); last: '
+                            f'{self._last_link_event or "-"}')
+            self.get_logger().error(self.failure)
+            self.finished = True
+
+    def publish_diagnostics(self) -> None:
+        """The link's health on /diagnostics (diagnostic_msgs), as drivers do."""
+        status = DiagnosticStatus(name=f'{self.get_name()}: ' + (
+            'serial link' if self.link else 'simulated servos'))
+        counts = {'rejected commands': self.rejected, 'clamped commands': self.clamped}
+        if self.link is None:
+            status.level, status.message, status.hardware_id = (
+                DiagnosticStatus.OK, 'simulated', 'sim')
+        else:
+            link, s = self.link, self.link.stats
+            status.hardware_id = link.path
+            status.level = {'connected': DiagnosticStatus.OK,
+                            'handshake': DiagnosticStatus.WARN}.get(link.state,
+                                                                     DiagnosticStatus.ERROR)
+            status.message = {'connected': 'connected',
+                              'handshake': 'opened, waiting for <ok>'}.get(
+                link.state, 'disconnected: ' + (self._last_link_event or 'not opened yet'))
+            age = time.monotonic() - link.joints_time
+            counts.update({'state': link.state, 'port': link.path, 'baud': link.baud,
+                           'commands sent': s.writes, 'states received': s.states,
+                           'last state age (s)': f'{age:.2f}' if math.isfinite(age) else '-',
+                           'connects': s.connects, 'losses': s.losses,
+                           'noise bytes': s.noise_bytes, 'bad frames': s.bad_frames,
+                           'commands refused by the sketch': s.rejected})
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in counts.items()]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.diagnostics.publish(msg)
 
     def on_state_timer(self) -> None:
         with self._lock:

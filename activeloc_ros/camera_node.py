@@ -20,7 +20,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import CameraInfo, Image, JointState
 
-from activeloc_ros.checks import non_negative, one_of, positive
+from activeloc_ros.checks import in_range, non_negative, one_of, positive
 from activeloc_ros.control import JOINT_NAMES
 from activeloc_ros.controller_node import MAPPING_PARAMS, mapping_from
 from activeloc_ros.errors import ConfigError, SourceError
@@ -57,6 +57,7 @@ def _screen_check(field: str):
     return check
 
 
+# Parameters without read_only take effect at once: the next frame uses them.
 PARAMS = [
     Param('source', f'bag:{default_bag()}',
           'bag:PATH | video:PATH | folder:PATH | device:N | realsense | virtual:SCENE '
@@ -72,21 +73,25 @@ PARAMS = [
           'has no intrinsics of its own (default: RealSense D435 colour)', positive),
     Param('restamp', True, 'stamp frames with the time they are published (a live camera) '
           'instead of their recorded time'),
-    Param('folder_fps', 10.0, 'frame rate of folder:PATH sources', positive),
-    Param('realsense_width', 640, 'RealSense colour width', positive),
-    Param('realsense_height', 480, 'RealSense colour height', positive),
-    Param('realsense_fps', 30, 'RealSense colour frame rate', positive),
+    Param('folder_fps', 10.0, 'frame rate of folder:PATH sources', positive, read_only=True),
+    Param('realsense_width', 640, 'RealSense colour width', positive, read_only=True),
+    Param('realsense_height', 480, 'RealSense colour height', positive, read_only=True),
+    Param('realsense_fps', 30, 'RealSense colour frame rate', positive, read_only=True),
     Param('max_frames', 0, 'stop after this many frames (0: no limit)', non_negative),
     Param('wait_for_subscriber', 120.0, 'recorded sources: seconds to wait for a subscriber '
           '(lockstep: for the whole graph) before the first frame, so a model still loading '
           'misses nothing (0: do not wait)', non_negative),
+    Param('min_subscribers', 1, 'recorded sources: image subscribers to wait for (up to '
+          'wait_for_subscriber) before the first frame; bringup --record makes it 2, so the '
+          'recording holds the first frame too', in_range(1, 1000)),
     Param('lockstep', False, 'virtual sources: step the graph frame by frame on a simulated '
           '/clock this node publishes, as closed_loop does (needs use_sim_time on every '
           'node)', read_only=True),
     Param('lockstep_timeout', 60.0, "lockstep: longest wait for the arm's pose and for "
-          'perception, s', positive),
+          'perception, s', positive, read_only=True),
     Param('lockstep_command_timeout', 2.0, "lockstep: longest wait for the controller's "
-          "answer to an action location and for the arm's confirmation, s", positive),
+          "answer to an action location and for the arm's confirmation, s", positive,
+          read_only=True),
     *(Param(name, getattr(ScreenConfig, field), SCREEN_HELP[name], _screen_check(field),
             read_only=True) for name, field in SCREEN_FIELDS.items()),
     *MAPPING_PARAMS,
@@ -104,7 +109,9 @@ def _time(ns: int) -> Time:
 class CameraNode(Node):
     def __init__(self, **kwargs):
         super().__init__('camera', **kwargs)
-        self.params = declare(self, PARAMS)
+        self.params = declare(self, PARAMS, cli_args=kwargs.get('cli_args'),
+                              use_global_arguments=kwargs.get('use_global_arguments', True),
+                              on_change=self.on_parameters)
         p = self.params
         self.virtual = p['source'].startswith('virtual:')
         screen = None
@@ -121,9 +128,10 @@ class CameraNode(Node):
             p['source'], clock=self._now_s, image_topic=p['image_topic'],
             folder_fps=p['folder_fps'], realsense_fps=p['realsense_fps'],
             realsense_size=(p['realsense_width'], p['realsense_height']), screen=screen)
-        qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
+        # The writer keeps the last frames until every reader has them, so a recorder gets
+        # each one; perception's own depth-1 queue still hands it only the newest.
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self.image_pub = self.create_publisher(Image, 'camera/image_raw', qos)
+        self.image_pub = self.create_publisher(Image, 'camera/image_raw', reliable)
         self.info_pub = self.create_publisher(CameraInfo, 'camera/camera_info', 10)
         self.lockstep = None
         if self.virtual:
@@ -145,6 +153,7 @@ class CameraNode(Node):
         self.published = 0
         self.logged_problems = set()
         self.finished = False
+        self.failure: str | None = None   # why the stream ended in error (run() exits 1)
         self.started_at = time.monotonic()
         self.waiting = not self.source.live and p['wait_for_subscriber'] > 0
         # a steady timer: in lockstep the simulated clock stands still until this node moves it
@@ -154,6 +163,15 @@ class CameraNode(Node):
                 if p['lockstep'] else 'real time')
         self.get_logger().info(f'streaming {p["source"]} ({mode})'
                                + (f'; {screen.describe()}' if screen else ''))
+
+    def on_parameters(self, values: dict, changed: set) -> None:
+        """A run-time change (read-only parameters are refused before): applied at once."""
+        changed = changed & values.keys()     # (use_sim_time is rclpy's)
+        self.params.update({name: values[name] for name in changed})
+        if 'rate' in changed:
+            self.pacer.set_rate(values['rate'])
+        self.get_logger().info('set at run time: ' + ', '.join(
+            f'{name} {values[name]!r}' for name in sorted(changed)))
 
     def _now_s(self) -> float:
         return self.get_clock().now().nanoseconds / 1e9
@@ -192,7 +210,7 @@ class CameraNode(Node):
         if self.pending is None:
             self.pending = self._next_frame()
             if self.pending is None:
-                self._finish('end of stream')
+                self._end_of_stream()
                 return
         if not self.source.live:
             if time.monotonic() < self.pacer.due(self.pending.stamp, time.monotonic()):
@@ -207,7 +225,7 @@ class CameraNode(Node):
         if step.phase == IDLE:
             self.pending = self._next_frame()
             if self.pending is None:
-                self._finish('end of stream')
+                self._end_of_stream()
                 return
             self._publish_clock(step.begin(now))
             return
@@ -232,15 +250,18 @@ class CameraNode(Node):
 
     def _graph_ready(self) -> bool:
         """Lockstep needs perception, the controller and the arm before the first tick."""
-        return (self.image_pub.get_subscription_count() > 0
+        return (self._image_subscribers()
                 and self.state_sub.get_publisher_count() > 0
                 and self.command_sub.get_publisher_count() > 0
                 and self.location_sub.get_publisher_count() > 0)
 
+    def _image_subscribers(self) -> bool:
+        return self.image_pub.get_subscription_count() >= self.params['min_subscribers']
+
     def _subscriber_ready(self) -> bool:
         if self.lockstep is not None and self._graph_ready():
             self.get_logger().info('perception, controller and arm are up: lockstep starts')
-        elif self.lockstep is None and self.image_pub.get_subscription_count() > 0:
+        elif self.lockstep is None and self._image_subscribers():
             self.get_logger().info('a subscriber is listening: replay starts')
         elif time.monotonic() - self.started_at > self.params['wait_for_subscriber']:
             self.get_logger().warning('no subscriber after '
@@ -259,7 +280,7 @@ class CameraNode(Node):
                 self.source.rewind()
                 frame = read()
         except SourceError as exc:
-            self.get_logger().error(str(exc))
+            self.failure = str(exc)
             return None
         for problem in set(self.source.skipped) - self.logged_problems:
             self.get_logger().warning(f'skipping frames: {problem}')
@@ -299,10 +320,26 @@ class CameraNode(Node):
                   0.0, float(k[1, 1]), float(k[1, 2]), 0.0, 0.0, 0.0, 1.0, 0.0]
         return info
 
+    def _end_of_stream(self) -> None:
+        skipped = self.source.skipped
+        if self.failure is None and self.published == 0 and skipped:
+            self.failure = (f'{self.params["source"]}: no frame could be published, all '
+                            f'{sum(skipped.values())} were skipped: '
+                            + '; '.join(f'{problem} ({n})' for problem, n in skipped.items()))
+        if self.failure is not None:
+            self.finished = True
+            self.timer.cancel()
+            self.get_logger().error(f'stream failed after {self.published} frames: '
+                                    f'{self.failure}')
+            return
+        self._finish('end of stream')
+
     def _finish(self, why: str) -> None:
         self.finished = True
         self.timer.cancel()
-        self.get_logger().info(f'{why}: {self.published} frames published')
+        skipped = sum(self.source.skipped.values())
+        self.get_logger().info(f'{why}: {self.published} frames published'
+                               + (f', {skipped} skipped' if skipped else ''))
         if self.lockstep is not None and self.lockstep.missed:
             self.get_logger().warning('lockstep timeouts: ' + ', '.join(
                 f'{kind}: {n}' for kind, n in sorted(self.lockstep.missed.items())))
@@ -312,8 +349,15 @@ class CameraNode(Node):
         return super().destroy_node()
 
 
+def stop(node: CameraNode) -> None:
+    if not node.finished:
+        node.get_logger().info(f'stopped: {node.published} frames published')
+
+
 def main(args=None) -> int:
-    return run(CameraNode, args)
+    # on_stop: a Ctrl-C or kill only ends the spin loop, so no frame is published into a
+    # context that rclpy's own signal handler has already shut down
+    return run(CameraNode, args, on_stop=stop)
 
 
 if __name__ == '__main__':

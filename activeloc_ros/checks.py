@@ -1,10 +1,29 @@
 """Pure value checks for configuration: each returns an error message, or None when valid.
 
-ROS-free, so the model's config and the nodes' ROS parameters share them.
+ROS-free, so the model's config and the nodes' ROS parameters share them. A closed interval
+is a ``Range``, which ``ros_params`` also writes into the parameter's descriptor (so
+``ros2 param describe`` shows it and rclpy enforces it): one declaration, two uses.
 """
+from dataclasses import dataclass
+import math
 from typing import Any, Callable
 
 Check = Callable[[Any], 'str | None']
+
+
+@dataclass(frozen=True)
+class Range:
+    """``lo <= value <= hi`` for a finite value (an infinite bound leaves that side open)."""
+
+    lo: float
+    hi: float
+
+    def __call__(self, value) -> 'str | None':
+        if math.isfinite(value) and self.lo <= value <= self.hi:
+            return None
+        if math.isinf(self.hi):
+            return f'must be >= {self.lo}, got {value}'
+        return f'must be in [{self.lo}, {self.hi}], got {value}'
 
 
 def one_of(*choices: str) -> Check:
@@ -13,16 +32,12 @@ def one_of(*choices: str) -> Check:
     return check
 
 
-def in_range(lo: float, hi: float) -> Check:
-    def check(value):
-        return None if lo <= value <= hi else f'must be in [{lo}, {hi}], got {value}'
-    return check
+def in_range(lo: float, hi: float) -> Range:
+    return Range(lo, hi)
 
 
-def at_least(lo: float) -> Check:
-    def check(value):
-        return None if value >= lo else f'must be >= {lo}, got {value}'
-    return check
+def at_least(lo: float) -> Range:
+    return Range(lo, math.inf)
 
 
 def above(lo: float) -> Check:

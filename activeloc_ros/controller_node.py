@@ -19,8 +19,8 @@ from sensor_msgs.msg import CameraInfo, JointState
 
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
 from activeloc_ros.control import (
-    ArmMapping, ControllerConfig, Intrinsics, JOINT_NAMES, PD_VARIANTS, PDConfig, pose_problem,
-    ReactiveController)
+    ArmMapping, ControllerConfig, Intrinsics, JOINT_NAMES, PD_VARIANTS, PDConfig, PDController,
+    pose_problem, ReactiveController)
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.pd import DERIVATIVE_MODES
 from activeloc_ros.errors import ConfigError
@@ -32,8 +32,22 @@ def _joint_names(value) -> 'str | None':
     return f'unknown joints {bad}; joints are {list(JOINT_NAMES)}' if bad else None
 
 
-# How joints aim the camera; the virtual camera (camera_node) declares the same ones.
+# How joints aim the camera; the virtual camera (camera_node) declares the same ones. Fixed
+# at start-up: they describe the arm and the camera mount, which do not change mid-run.
 MAPPING_PARAMS = (
+    Param('home_deg', [90, 90, 45, 45, 90, 73], 'Home pose (degrees, camera straight ahead)',
+          pose_problem, read_only=True),
+    Param('pan_joint', 'base', 'Joint that pans the camera', one_of(*JOINT_NAMES),
+          read_only=True),
+    Param('pan_gain', 1.0, 'Degrees of pan joint per degree of pan (negative flips)',
+          read_only=True),
+    Param('tilt_joints', ['wrist_ver'], 'Joints that tilt the camera', _joint_names,
+          read_only=True),
+    Param('tilt_gains', [1.0], 'Degrees of each tilt joint per degree of tilt',
+          read_only=True),
+)
+
+PARAMS = (
     Param('home_deg', [90, 90, 45, 45, 90, 73], 'Home pose (degrees, camera straight ahead)',
           pose_problem),
     Param('pan_joint', 'base', 'Joint that pans the camera', one_of(*JOINT_NAMES)),
@@ -42,6 +56,8 @@ MAPPING_PARAMS = (
     Param('tilt_gains', [1.0], 'Degrees of each tilt joint per degree of tilt'),
 )
 
+# The gains, limits and filters apply at once when set at run time (ros2 param set); the
+# servo speed, the mapping and the report period are read-only.
 PARAMS = (
     Param('pd_variant', '', 'A PD variant of the paper (Table 3) overriding kp/kd: '
           + ', '.join(f'{k}={v}' for k, v in PD_VARIANTS.items()) + '; empty uses kp/kd',
@@ -66,11 +82,11 @@ PARAMS = (
           in_range(0.0, 180.0)),
     Param('tilt_limit_deg', 180.0, 'Never aim farther than this up or down, degrees',
           in_range(0.0, 180.0)),
-    Param('step_delay_ms', 20, 'Servo step delay, ms per degree (sets the speed limit)',
-          in_range(*STEP_DELAY_MS_RANGE)),
+    Param('step_delay_ms', 20, 'Servo step delay, ms per degree (sets the speed limit; must '
+          "match the arm's)", in_range(*STEP_DELAY_MS_RANGE), read_only=True),
     *MAPPING_PARAMS,
     Param('latency_report_period', 10.0, 'Log frame-to-command latency p50/p95 every this '
-          'many seconds (0: only at shutdown)', non_negative),
+          'many seconds (0: only at shutdown)', non_negative, read_only=True),
 )
 
 
@@ -98,6 +114,20 @@ def config_from(values: dict) -> ControllerConfig:
                             tilt_limit_deg=values['tilt_limit_deg'])
 
 
+def check_change(values: dict, changed: set) -> 'str | None':
+    """Refuse a run-time change that would be accepted but have no effect, or a set of
+    values the core refuses."""
+    ignored = sorted(changed & {'kp', 'kd'})
+    if values['pd_variant'] and ignored and 'pd_variant' not in changed:
+        return (f'{", ".join(ignored)} would have no effect: pd_variant '
+                f'{values["pd_variant"]!r} sets the gains; set pd_variant to \'\' with them')
+    try:
+        config_from(values)
+    except ConfigError as exc:
+        return str(exc)
+    return None
+
+
 def _seconds(stamp) -> float:
     return stamp.sec + stamp.nanosec * 1e-9
 
@@ -106,7 +136,9 @@ class ControllerNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('controller', **kwargs)
-        values = declare(self, PARAMS)
+        values = declare(self, PARAMS, cli_args=kwargs.get('cli_args'),
+                         use_global_arguments=kwargs.get('use_global_arguments', True),
+                         check_all=check_change, on_change=self.on_parameters)
         self.config = config_from(values)
         # on a simulated clock (lockstep) this is 0, as in closed_loop
         self.core = ReactiveController(self.config, t0=self._now())
@@ -132,11 +164,29 @@ class ControllerNode(Node):
         self.create_timer(0.05, self.on_watchdog)
         if values['latency_report_period'] > 0:
             self.create_timer(values['latency_report_period'], self.report_latency)
-        pd = self.config.pd
+        self._malformed_states = 0
+        self._log_config('waiting for camera_info')
+
+    def _log_config(self, then: str) -> None:
+        pd, c = self.config.pd, self.config
+        variant = self.get_parameter('pd_variant').value
         self.get_logger().info(
-            f'PD kp={pd.kp} kd={pd.kd} ({pd.derivative}), dead band '
-            f'{values["dead_band_deg"]} deg, watchdog {self.config.watchdog_timeout} s; '
-            'waiting for camera_info')
+            f'PD kp={pd.kp} kd={pd.kd} ({pd.derivative}'
+            + (f", pd_variant {variant!r} sets the gains" if variant else '')
+            + f'), dead band {math.degrees(pd.dead_band):g} deg, watchdog '
+            f'{c.watchdog_timeout} s, aim limits pan {c.pan_limit_deg:g} tilt '
+            f'{c.tilt_limit_deg:g} deg; {then}')
+
+    def on_parameters(self, values: dict, changed: set) -> None:
+        """A run-time change, validated by check_change: the next command uses it."""
+        config = config_from(values)
+        with self._lock:
+            if config.pd != self.config.pd:
+                self.core.pd = PDController(config.pd)  # no derivative across the change
+            self.core.config = config
+            self.config = config
+        self._log_config('set at run time: ' + ', '.join(
+            f'{name} {values[name]!r}' for name in sorted(changed)))
 
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
@@ -171,7 +221,12 @@ class ControllerNode(Node):
     def _on_joint_states(self, msg: JointState) -> None:
         index = {name: i for i, name in enumerate(msg.name)}
         if len(msg.position) != len(msg.name) or any(n not in index for n in JOINT_NAMES):
+            self._malformed_states += 1
+            self.get_logger().warning(
+                f'ignored joint states without the six joints by name ('
+                f'{self._malformed_states} so far)', throttle_duration_sec=5.0)
             return
+        # the core ignores poses that are not finite (1e308 rad is inf degrees)
         joints = [math.degrees(msg.position[index[n]]) for n in JOINT_NAMES]
         t = _seconds(msg.header.stamp) or self._now()
         self.core.observe_joints(joints, t)

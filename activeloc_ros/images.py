@@ -3,6 +3,8 @@
 Functions take and return plain fields so they can be tested without message types; the
 nodes unpack messages into them. Every unsupported input raises FrameError.
 """
+import sys
+
 import cv2
 import numpy as np
 
@@ -20,13 +22,25 @@ SUPPORTED_ENCODINGS = tuple(_ENCODINGS)
 MAX_SIDE = 8192
 
 
-def image_to_rgb(encoding: str, height: int, width: int, step: int, data) -> np.ndarray:
-    """Return an (H, W, 3) uint8 RGB copy of a sensor_msgs/Image's pixels."""
+def check_size(width: int, height: int, max_pixels: int | None) -> None:
+    """Raise FrameError for a frame of more than `max_pixels` pixels (None: no limit)."""
+    if max_pixels is not None and width * height > max_pixels:
+        raise FrameError(f'frame of {width}x{height} pixels is larger than the limit of '
+                         f'{max_pixels} pixels (max_image_pixels)')
+
+
+def image_to_rgb(encoding: str, height: int, width: int, step: int, data, *,
+                 max_pixels: int | None = None) -> np.ndarray:
+    """Return an (H, W, 3) uint8 RGB copy of a sensor_msgs/Image's pixels.
+
+    :param max_pixels: refuse larger frames before touching their pixels.
+    """
     if encoding not in _ENCODINGS:
         raise FrameError(f'unsupported image encoding {encoding!r} '
                          f'(supported: {", ".join(SUPPORTED_ENCODINGS)})')
     if not (0 < height <= MAX_SIDE and 0 < width <= MAX_SIDE):
         raise FrameError(f'unsupported image size {width}x{height}')
+    check_size(width, height, max_pixels)
     channels, code = _ENCODINGS[encoding]
     if step < width * channels:
         raise FrameError(f'image step {step} too small for {width} px of {encoding}')
@@ -54,13 +68,53 @@ def rgb_to_image_fields(rgb: np.ndarray, encoding: str = 'rgb8') -> dict:
             'is_bigendian': 0, 'data': pixels.tobytes()}
 
 
-def decode_compressed(fmt: str, data) -> np.ndarray:
-    """Decode a sensor_msgs/CompressedImage (jpeg/png) to RGB."""
+def compressed_size(data) -> tuple[int, int] | None:
+    """(width, height) from a PNG or JPEG header, without decoding; None for other data."""
+    head = bytes(memoryview(data)[:65536])
+    if head.startswith(b'\x89PNG\r\n\x1a\n') and head[12:16] == b'IHDR':
+        return int.from_bytes(head[16:20], 'big'), int.from_bytes(head[20:24], 'big')
+    if not head.startswith(b'\xff\xd8'):
+        return None
+    i = 2
+    while i + 9 <= len(head) and head[i] == 0xFF:
+        marker = head[i + 1]
+        # SOF0..SOF15 carry the size; C4 (DHT), C8 (JPG) and CC (DAC) share the range
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            return int.from_bytes(head[i + 7:i + 9], 'big'), int.from_bytes(head[i + 5:i + 7],
+                                                                               'big')
+        if marker == 0xFF:      # fill byte
+            i += 1
+        elif 0xD0 <= marker <= 0xD7 or marker == 0x01:     # no length field
+            i += 2
+        else:
+            i += 2 + int.from_bytes(head[i + 2:i + 4], 'big')
+    return None
+
+
+def decode_compressed(fmt: str, data, *, max_pixels: int | None = None) -> np.ndarray:
+    """Decode a sensor_msgs/CompressedImage (jpeg/png) to RGB.
+
+    :param max_pixels: refuse larger frames, for PNG and JPEG before decoding them.
+    """
+    size = compressed_size(data) if max_pixels is not None else None
+    if size is not None:
+        check_size(*size, max_pixels)
     buf = np.frombuffer(data, dtype=np.uint8)
     bgr = cv2.imdecode(buf, cv2.IMREAD_COLOR) if buf.size else None
     if bgr is None:
         raise FrameError(f'cannot decode compressed image of format {fmt!r} ({buf.size} bytes)')
+    check_size(bgr.shape[1], bgr.shape[0], max_pixels)
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def float_image_fields(values: np.ndarray) -> dict:
+    """The fields of a sensor_msgs/Image holding a (rows, cols) array as 32FC1."""
+    if not isinstance(values, np.ndarray) or values.ndim != 2:
+        raise FrameError(f'expected a (rows, cols) array, got {getattr(values, "shape", values)}')
+    pixels = np.ascontiguousarray(values, dtype=np.float32)
+    rows, cols = pixels.shape
+    return {'encoding': '32FC1', 'height': rows, 'width': cols, 'step': cols * 4,
+            'is_bigendian': int(sys.byteorder == 'big'), 'data': pixels.tobytes()}
 
 
 def check_rgb(rgb: np.ndarray) -> None:

@@ -1,30 +1,59 @@
 """Perception node: the online surprise model on every newest camera frame.
 
-Subscribes `camera/image_raw` (depth 1: the newest frame wins) and publishes
-`surprise_map` (std_msgs/Float32MultiArray, 14 rows x 14 cols), `surprise_map/overlay`
-(the frame with the map blended on it) and `action_location` (geometry_msgs/PointStamped:
-pixel x, y of the action in the camera image, z = the map's peak; the frame's header).
+Subscribes `camera/image_raw` (sensor_msgs/Image; with `image_transport: compressed`,
+`camera/image_raw/compressed`, sensor_msgs/CompressedImage) with depth 1, so the newest
+frame wins, and with the reliability its publishers offer (`image_reliability: auto`,
+`activeloc_ros.qos`): a best-effort camera (SensorDataQoS) is heard, and a reliable one
+loses no large frame on the way. Publishes
+`surprise_map` (std_msgs/Float32MultiArray, 14 rows x 14 cols), `surprise_map/image` (the
+same map as a 32FC1 sensor_msgs/Image with the frame's header), `surprise_map/overlay`
+(the frame with the map blended on it), `action_location` (geometry_msgs/PointStamped:
+pixel x, y of the action in the camera image, z = the map's peak; the frame's header) and
+its health on `/diagnostics` (maps/s, latency, dropped and skipped frames).
 
     ros2 run activeloc_ros perception_node --ros-args --params-file params/perception.yaml
 """
 import dataclasses
 import math
+import time
 
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PointStamped
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import Image
-from std_msgs.msg import Float32MultiArray, MultiArrayDimension
+from rclpy.time import Time
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from std_msgs.msg import Float32MultiArray, Header, MultiArrayDimension
 
-from activeloc_ros.checks import in_range
+from activeloc_ros.checks import in_range, one_of, positive
 from activeloc_ros.errors import FrameError
-from activeloc_ros.images import image_to_rgb, overlay, rgb_to_image_fields
+from activeloc_ros.health import PipelineStats
+from activeloc_ros.images import (decode_compressed, float_image_fields, image_to_rgb, overlay,
+                                  rgb_to_image_fields)
 from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
+from activeloc_ros.qos import offered_reliability
 from activeloc_ros.ros_params import declare, Param, run
 
+RELIABILITY = {'best_effort': ReliabilityPolicy.BEST_EFFORT,
+               'reliable': ReliabilityPolicy.RELIABLE}
+QOS_CHECK_PERIOD_S = 1.0     # image_reliability auto: how often the publishers are looked at
+
+# Parameters without read_only take effect at the next frame.
 NODE_PARAMS = [
     Param('publish_overlay', True, 'publish surprise_map/overlay (costs a few ms per frame)'),
     Param('overlay_alpha', 0.45, 'weight of the heat map in the overlay', in_range(0.0, 1.0)),
+    Param('max_image_pixels', 3840 * 2160, 'frames of more pixels (width x height) are '
+          'skipped with a warning (default: 3840x2160, 4K UHD)', positive),
+    Param('image_transport', 'raw', 'raw: sensor_msgs/Image on camera/image_raw; compressed: '
+          'sensor_msgs/CompressedImage (jpeg, png) on camera/image_raw/compressed',
+          one_of('raw', 'compressed'), read_only=True),
+    Param('image_reliability', 'auto', 'QoS reliability of the image subscription: auto '
+          'follows the publishers (best effort if one offers only that, else reliable); '
+          'best_effort hears every camera but loses large frames over DDS; reliable hears '
+          'reliable cameras only', one_of('auto', *RELIABILITY), read_only=True),
+    Param('diagnostics_period', 1.0, 'seconds between two /diagnostics messages', positive,
+          read_only=True),
     Param('checkpoint', '', 'model checkpoint to start from (empty: fresh model)',
           read_only=True),
 ]
@@ -55,55 +84,133 @@ class PerceptionNode(Node):
     def __init__(self, **kwargs):
         super().__init__('perception', **kwargs)
         fields = model_params()
-        values = declare(self, fields + NODE_PARAMS)
+        values = declare(self, fields + NODE_PARAMS, cli_args=kwargs.get('cli_args'),
+                         use_global_arguments=kwargs.get('use_global_arguments', True),
+                         on_change=self.on_parameters)
         self.params = {p.name: values[p.name] for p in NODE_PARAMS}
         config = {f.name: values[f.name] for f in fields}
         if self.params['checkpoint']:
             self.model = SurpriseModel.load(self.params['checkpoint'])
         else:
             self.model = SurpriseModel(PerceptionConfig.from_dict(config))
-        image_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
+        overlay_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
         self.map_pub = self.create_publisher(Float32MultiArray, 'surprise_map', 10)
-        self.overlay_pub = self.create_publisher(Image, 'surprise_map/overlay', image_qos)
+        self.map_image_pub = self.create_publisher(Image, 'surprise_map/image', 10)
+        self.overlay_pub = self.create_publisher(Image, 'surprise_map/overlay', overlay_qos)
         self.location_pub = self.create_publisher(PointStamped, 'action_location', 10)
-        self.sub = self.create_subscription(Image, 'camera/image_raw', self.on_image, image_qos)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        choice = self.params['image_reliability']
+        self.sub = self._subscribe(RELIABILITY.get(choice, ReliabilityPolicy.RELIABLE))
+        if choice == 'auto':     # a steady timer: in lockstep simulated time stands still
+            self.create_timer(QOS_CHECK_PERIOD_S, self._follow_publishers,
+                              clock=Clock(clock_type=ClockType.STEADY_TIME))
+        # one camera_info per published frame: counts the frames the depth-1 queue dropped
+        self.info_sub = self.create_subscription(
+            CameraInfo, 'camera/camera_info', lambda msg: self.stats.frame_announced(),
+            QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT))
+        self.stats = PipelineStats(time.monotonic())
+        self.diagnostics_timer = self.create_timer(self.params['diagnostics_period'],
+                                                   self.publish_diagnostics)
         self.logged_problems = set()
         self.nan_events = 0
-        self.frames = 0
-        self.get_logger().info(f'model ready: encoder {self.model.cfg.encoder}')
+        self.get_logger().info(f'model ready: encoder {self.model.cfg.encoder}; listening on '
+                               f'{self.sub.topic_name} ({self.params["image_reliability"]})')
+
+    def _subscribe(self, reliability: ReliabilityPolicy):
+        qos = QoSProfile(depth=1, reliability=reliability)
+        if self.params['image_transport'] == 'compressed':
+            return self.create_subscription(CompressedImage, 'camera/image_raw/compressed',
+                                            self.on_compressed, qos)
+        return self.create_subscription(Image, 'camera/image_raw', self.on_image, qos)
+
+    def _follow_publishers(self) -> None:
+        """image_reliability auto: subscribe again when the publishers need another QoS."""
+        wanted = offered_reliability(self, self.sub.topic_name)
+        if wanted == self.sub.qos_profile.reliability:
+            return
+        self.destroy_subscription(self.sub)
+        self.sub = self._subscribe(wanted)
+        self.get_logger().info(f'image publishers on {self.sub.topic_name} need '
+                               f'{wanted.name.lower()}: subscribed again with it')
+
+    def on_parameters(self, values: dict, changed: set) -> None:
+        """A run-time change (read-only parameters are refused before): the next frame uses
+        it."""
+        changed = changed & values.keys()     # (use_sim_time is rclpy's)
+        self.params.update({name: values[name] for name in changed & self.params.keys()})
+        self.get_logger().info('set at run time: ' + ', '.join(
+            f'{name} {values[name]!r}' for name in sorted(changed)))
 
     def on_image(self, msg: Image) -> None:
+        self.stats.frame_received()
         try:
-            rgb = image_to_rgb(msg.encoding, msg.height, msg.width, msg.step, msg.data)
+            rgb = image_to_rgb(msg.encoding, msg.height, msg.width, msg.step, msg.data,
+                               max_pixels=self.params['max_image_pixels'])
         except FrameError as exc:
-            self._warn_once(f'skipping frames: {exc}')
+            self._skip(exc)
             return
+        self.process(msg.header, rgb)
+
+    def on_compressed(self, msg: CompressedImage) -> None:
+        self.stats.frame_received()
+        try:
+            rgb = decode_compressed(msg.format, msg.data,
+                                    max_pixels=self.params['max_image_pixels'])
+        except FrameError as exc:
+            self._skip(exc)
+            return
+        self.process(msg.header, rgb)
+
+    def process(self, header, rgb) -> None:
+        started = time.monotonic()
         result = self.model.step(rgb)
-        self.frames += 1
+        compute_s = time.monotonic() - started
         if result.nan_events != self.nan_events:
             self.nan_events = result.nan_events
             self.get_logger().warning(f'non-finite values in the model: update skipped and '
                                       f'state reset ({self.nan_events} so far)')
         self.map_pub.publish(map_message(result.surprise_map))
-        location = PointStamped(header=msg.header)
+        self.map_image_pub.publish(Image(header=header,
+                                         **float_image_fields(result.surprise_map)))
+        location = PointStamped(header=header)
         location.point.x, location.point.y = (float(v) for v in result.location_px)
         location.point.z = float(result.peak) if math.isfinite(result.peak) else 0.0
         self.location_pub.publish(location)
         if self.params['publish_overlay'] and self.overlay_pub.get_subscription_count() > 0:
             blended = overlay(rgb, result.surprise_map, alpha=self.params['overlay_alpha'])
-            image = Image(header=msg.header, **rgb_to_image_fields(blended))
+            image = Image(header=header, **rgb_to_image_fields(blended))
             self.overlay_pub.publish(image)
-        if self.frames == 1:
+        latency = self.get_clock().now() - Time.from_msg(header.stamp)
+        self.stats.map_published(latency_s=latency.nanoseconds / 1e9, compute_s=compute_s)
+        if self.stats.maps == 1:
             self.get_logger().info('first surprise map published')
 
-    def _warn_once(self, problem: str) -> None:
-        if problem not in self.logged_problems:
-            self.logged_problems.add(problem)
-            self.get_logger().warning(problem)
+    def publish_diagnostics(self) -> None:
+        report = self.stats.report(time.monotonic())
+        status = DiagnosticStatus(
+            level=bytes([report.level]), name=f'{self.get_name()}: surprise maps',
+            message=report.message, hardware_id=self.sub.topic_name,
+            values=[KeyValue(key=k, value=v) for k, v in report.values.items()])
+        header = Header(stamp=self.get_clock().now().to_msg())
+        self.diagnostics_pub.publish(DiagnosticArray(header=header, status=[status]))
+
+    def _skip(self, problem: FrameError) -> None:
+        """Skip a frame; each kind of problem is logged once and counted in /diagnostics."""
+        text = f'skipping frames: {problem}'
+        self.stats.frame_skipped(str(problem))
+        if text not in self.logged_problems:
+            self.logged_problems.add(text)
+            self.get_logger().warning(text)
+
+
+def stop(node: PerceptionNode) -> None:
+    node.get_logger().info(f'stopped: {node.stats.summary()}')
 
 
 def main(args=None) -> int:
-    return run(PerceptionNode, args)
+    # on_stop: a Ctrl-C or kill only ends the spin loop, so the frame in hand is finished
+    # and published before the context ends (rclpy's own handler shut it down under it)
+    return run(PerceptionNode, args, on_stop=stop)
 
 
 if __name__ == '__main__':

@@ -1,21 +1,50 @@
 """Typed, described and validated ROS parameters, and the Jazzy run idiom for every node.
 
 Validation is a pure function per parameter (value -> error message or None), registered
-before the parameters are declared so values from `params/*.yaml` are validated too.
+before the parameters are declared so values from `params/*.yaml` are validated too. A
+``checks.Range`` goes into the descriptor (``floating_point_range`` / ``integer_range``), so
+``ros2 param describe`` shows it and rclpy enforces it.
+
+The params files a node is given are read here too, because rcl passes over some mistakes
+in silence: a value of the wrong type in a later file (``kp: 'fast'``) leaves the earlier
+value in place, keys no node declares and sections naming no node are never looked at.
+Each of these stops the node with a message naming the file, the section and the key.
+
+At run time a parameter either applies at once (the node passes ``on_change``; a whole-set
+check ``check_all`` may refuse a combination) or is declared read-only, so that
+``ros2 param set`` is refused rather than reported as set and never used.
 """
+from dataclasses import dataclass
+import difflib
+import functools
+import math
+from pathlib import Path
+import re
 import signal
 import sys
 import threading
-from dataclasses import dataclass
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-import rclpy
+from rcl_interfaces.msg import (
+    FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult)
+try:
+    import rclpy
+except ModuleNotFoundError as exc:     # pip install . without the 'ros' extra
+    raise ModuleNotFoundError(
+        'rclpy is not installed: source a ROS 2 Jazzy (source /opt/ros/jazzy/setup.bash) or '
+        "install the PyPI wheels with pip install '.[ros]'", name='rclpy') from exc
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException
+from rclpy.parameter import Parameter
+import yaml
 
-from activeloc_ros.checks import Check
+from activeloc_ros.checks import Check, Range
 from activeloc_ros.errors import ActivelocError, ConfigError
+
+# The package's nodes, by their fixed names (a params file section must name one, or be a
+# wildcard such as /**).
+NODE_NAMES = ('camera', 'perception', 'controller', 'arm')
+_INT64 = (-2**63, 2**63 - 1)
 
 
 @dataclass(frozen=True)
@@ -40,26 +69,243 @@ def validate(params: Sequence[Param], values: dict[str, Any]) -> list[str]:
     return errors
 
 
-def declare(node, params: Sequence[Param]) -> dict[str, Any]:
+def descriptor(spec: Param) -> ParameterDescriptor:
+    """The descriptor of `spec`: description, read-only flag and, for a numeric scalar with
+    a ``Range`` check, its range."""
+    text = spec.description + (' (read-only: set at start-up)' if spec.read_only else '')
+    result = ParameterDescriptor(description=text, read_only=spec.read_only)
+    check = spec.check
+    if isinstance(check, Range) and not isinstance(spec.default, bool):
+        if isinstance(spec.default, int):
+            lo = _INT64[0] if math.isinf(check.lo) else math.ceil(check.lo)
+            hi = _INT64[1] if math.isinf(check.hi) else math.floor(check.hi)
+            result.integer_range = [IntegerRange(from_value=lo, to_value=hi, step=1)]
+        elif isinstance(spec.default, float):
+            lo = -sys.float_info.max if math.isinf(check.lo) else float(check.lo)
+            hi = sys.float_info.max if math.isinf(check.hi) else float(check.hi)
+            result.floating_point_range = [FloatingPointRange(from_value=lo, to_value=hi)]
+    return result
+
+
+def _in_descriptor(spec: Param) -> bool:
+    d = descriptor(spec)
+    return bool(d.integer_range or d.floating_point_range)
+
+
+# -- params files -------------------------------------------------------------------------
+
+class _RclLoader(yaml.SafeLoader):
+    """YAML as rcl reads a params file: ``1e-6`` is a number (PyYAML's 1.1 rules want a dot)."""
+
+
+_RclLoader.add_implicit_resolver(
+    'tag:yaml.org,2002:float',
+    re.compile(r'^[-+]?([0-9]+(\.[0-9]*)?|\.[0-9]+)[eE][-+]?[0-9]+$'), list('-+0123456789.'))
+
+
+def load_params_file(path) -> Any:
+    return yaml.load(Path(path).read_text(), Loader=_RclLoader)
+
+
+def parse_value(text: str) -> Any:
+    """A ``-p name:=value`` value as rcl types it."""
+    return yaml.load(text, Loader=_RclLoader)
+
+
+def _declared_type(value) -> 'Parameter.Type | None':
+    """The ROS type of a default; None for an empty list (any array type fits)."""
+    if isinstance(value, (list, tuple)) and not value:
+        return None
+    return Parameter.Type.from_parameter_value(value)
+
+
+def params_files(args: Iterable[str] | None) -> list[str]:
+    """The ``--params-file`` paths among ROS command-line arguments."""
+    args = list(args or [])
+    return [args[i + 1] for i, a in enumerate(args[:-1]) if a == '--params-file']
+
+
+def _flatten(section: Mapping, prefix: str = '') -> dict[str, Any]:
+    """rcl's view of nested keys: ``a: {b: 1}`` is the parameter ``a.b``."""
+    flat = {}
+    for key, value in section.items():
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f'{prefix}{key}.'))
+        else:
+            flat[f'{prefix}{key}'] = value
+    return flat
+
+
+def _type_name(kind: Parameter.Type) -> str:
+    return kind.name.lower().replace('_', ' ')
+
+
+def _example(kind: Parameter.Type, value) -> str:
+    if kind == Parameter.Type.DOUBLE and isinstance(value, int) and not isinstance(value, bool):
+        return f' (write {float(value)!r})'
+    return ''
+
+
+def params_file_problems(content, node: str, declared: Mapping[str, Parameter.Type],
+                         known_elsewhere: Iterable[str] = ()) -> list[str]:
+    """Why a params file's `content` (parsed YAML) is wrong for `node`; empty when fine.
+
+    A section must name one of NODE_NAMES (any namespace) or be a wildcard. In the
+    sections that reach `node` (its own name, ``*`` or ``**``), a value must have the type
+    the node declared; a key it does not declare is an error, except in a wildcard section
+    when another node of the package declares it (`known_elsewhere`).
+    """
+    if not isinstance(content, dict):
+        return ['not in ROS 2 format (<node or /**>: ros__parameters: {...})']
+    problems = []
+    known_elsewhere = set(known_elsewhere)
+    for section, body in content.items():
+        target = str(section).strip('/').split('/')[-1]
+        if target not in NODE_NAMES + ('*', '**'):
+            close = difflib.get_close_matches(target, NODE_NAMES, n=1, cutoff=0.5)
+            hint = f' (did you mean /{close[0]}?)' if close else ''
+            problems.append(f'section {section!r} names no node of activeloc_ros, so nothing '
+                            f'in it would be applied{hint}; the nodes are '
+                            + ', '.join(f'/{n}' for n in NODE_NAMES) + ', or /** for all')
+            continue
+        if target not in (node, '*', '**'):
+            continue
+        if not isinstance(body, dict) or not isinstance(body.get('ros__parameters'), dict):
+            problems.append(f'section {section!r} has no ros__parameters mapping')
+            continue
+        for name, value in _flatten(body['ros__parameters']).items():
+            if name not in declared:
+                if target != node and name in known_elsewhere:
+                    continue  # for another node of the package
+                close = difflib.get_close_matches(name, list(declared), n=1)
+                hint = f' (did you mean {close[0]!r}?)' if close else ''
+                problems.append(f'section {section!r}: {name!r} is not a parameter of node '
+                                f'{node!r}{hint}')
+                continue
+            expected = declared[name]
+            if expected is None:
+                continue
+            try:
+                kind = Parameter.Type.from_parameter_value(value)
+            except TypeError:
+                kind = None
+            if kind != expected:
+                got = _type_name(kind) if kind is not None else 'a mixed list'
+                problems.append(f'section {section!r}: {name!r} must be a '
+                                f'{_type_name(expected)}{_example(expected, value)}, got '
+                                f'{value!r} ({got})')
+    return problems
+
+
+@functools.lru_cache(maxsize=None)
+def _shipped_keys() -> frozenset[str]:
+    """Every parameter set in the package's own params files: the keys a shared /**
+    section may hold for other nodes."""
+    from activeloc_ros.paths import share_path
+    keys = set()
+    for name in NODE_NAMES:
+        path = share_path(f'params/{name}.yaml')
+        if path.is_file():
+            for body in (load_params_file(path) or {}).values():
+                keys.update(_flatten((body or {}).get('ros__parameters') or {}))
+    return frozenset(keys)
+
+
+# rclpy's own parameters of every node, which a params file may set too
+BUILTIN_PARAMS = {'use_sim_time': Parameter.Type.BOOL,
+                  'start_type_description_service': Parameter.Type.BOOL}
+
+
+def files_problems(node_name: str, params: Sequence[Param], files: Iterable[str]) -> list[str]:
+    """Every problem of the params `files` for the node `node_name` declaring `params`
+    (see ``params_file_problems``), each naming its file."""
+    declared = {**BUILTIN_PARAMS, **{p.name: _declared_type(p.default) for p in params}}
+    problems = []
+    for path in files:
+        try:
+            content = load_params_file(path)
+        except (OSError, yaml.YAMLError) as exc:
+            problems.append(f'{path}: cannot be read: {exc}')
+            continue
+        problems += [f'{path}: {p}' for p in params_file_problems(
+            content, node_name, declared, _shipped_keys())]
+    return problems
+
+
+def file_values(node_name: str, files: Iterable[str]) -> dict[str, Any]:
+    """The values that params `files` give the node `node_name`, later files winning."""
+    values = {}
+    for path in files:
+        for section, body in (load_params_file(path) or {}).items():
+            if str(section).strip('/').split('/')[-1] in ('*', '**', node_name):
+                values.update(_flatten((body or {}).get('ros__parameters') or {}))
+    return values
+
+
+def check_params_files(node, params: Sequence[Param], files: Iterable[str]) -> None:
+    """Raise ConfigError listing every problem of `files` for `node` (``files_problems``)."""
+    problems = files_problems(node.get_name(), params, files)
+    if problems:
+        raise ConfigError(f'node {node.get_name()!r}, params file problems:\n  '
+                          + '\n  '.join(problems))
+
+
+# The arguments `run` initialised rclpy with: a node that uses the global arguments reads
+# their params files.
+_process_args: list[str] = []
+
+
+def declare(node, params: Sequence[Param], *, cli_args: Sequence[str] | None = None,
+            use_global_arguments: bool = True,
+            check_all: Callable[[dict, set], 'str | None'] | None = None,
+            on_change: Callable[[dict, set], None] | None = None) -> dict[str, Any]:
     """Declare `params` on `node` with descriptors and validation; return their values.
 
-    Raises ConfigError naming the parameter when a value (default, YAML or command line)
-    is invalid.
+    Raises ConfigError naming the parameter (and the file) when a value (default, YAML or
+    command line) is invalid, or a params file holds a key or section nothing reads.
+
+    :param cli_args: the node's own ``cli_args``, whose params files are checked too.
+    :param check_all: at run time, ``(values after the change, changed names) -> error or
+        None`` for rules across parameters.
+    :param on_change: at run time, called with the same after a change was accepted: the
+        node applies it. Without one, declare the parameters read-only.
     """
+    ready = False
+
+    def values_after(changes) -> dict[str, Any]:
+        values = {p.name: node.get_parameter(p.name).value for p in params}
+        values.update({p.name: p.value for p in changes})
+        return values
+
     def on_set(changes):
-        errors = validate(params, {p.name: p.value for p in changes})
+        # ranges in the descriptor were enforced by rclpy before this callback
+        errors = validate([p for p in params if not _in_descriptor(p)],
+                          {p.name: p.value for p in changes})
+        if not errors and ready and check_all is not None:
+            problem = check_all(values_after(changes), {p.name for p in changes})
+            if problem:
+                errors.append(problem)
         return SetParametersResult(successful=not errors, reason='; '.join(errors))
 
+    def post_set(changes):
+        if ready and on_change is not None:
+            on_change(values_after([]), {p.name for p in changes})
+
+    files = params_files(cli_args)
+    if use_global_arguments:
+        files = params_files(_process_args) + files
+    check_params_files(node, params, files)
     node.add_on_set_parameters_callback(on_set)
+    node.add_post_set_parameters_callback(post_set)
     for spec in params:
-        descriptor = ParameterDescriptor(description=spec.description, read_only=spec.read_only)
         try:
-            node.declare_parameter(spec.name, spec.default, descriptor)
+            node.declare_parameter(spec.name, spec.default, descriptor(spec))
         except InvalidParameterValueException as exc:
             reason = exc.args[2] if len(exc.args) == 3 else str(exc)
             raise ConfigError(f'node {node.get_name()!r}: {reason}') from exc
         except InvalidParameterTypeException as exc:  # e.g. kp:=1 for a double
             raise ConfigError(f'node {node.get_name()!r}: {exc}') from exc
+    ready = True
     return {p.name: node.get_parameter(p.name).value for p in params}
 
 
@@ -71,10 +317,21 @@ def run(node_factory: Callable[..., Any], args=None, *,
         on_stop: Callable[[Any], None] | None = None) -> int:
     """Init, spin and shut down one node the Jazzy way; a project error exits 1 with a message.
 
+    A node that ends by itself sets ``finished``; one that ends because it cannot go on
+    (the arm's serial link is gone) also sets ``failure`` to the reason, and the process
+    exits 1 with it.
+
     :param on_stop: called with the node after Ctrl-C and before the context ends, so
         the node can act on purpose (the arm holds) while it can still publish.
     """
     from rclpy.signals import SignalHandlerOptions
+    process_args = sys.argv if args is None else args
+    for path in params_files(process_args):  # rcl's own parse error names no line
+        try:
+            load_params_file(path)
+        except (OSError, yaml.YAMLError) as exc:
+            print(f'error: params file {path} cannot be read: {exc}', file=sys.stderr)
+            return 1
     handler = SignalHandlerOptions.NO if on_stop else SignalHandlerOptions.ALL
     stop = threading.Event()
 
@@ -91,6 +348,7 @@ def run(node_factory: Callable[..., Any], args=None, *,
         # started in the background inherits SIG_IGN, and Python then leaves it so).
         signal.signal(signal.SIGINT, request_stop)
         signal.signal(signal.SIGTERM, request_stop)
+    _process_args[:] = process_args
     rclpy.init(args=args, signal_handler_options=handler)
     node = None
     try:
@@ -109,4 +367,9 @@ def run(node_factory: Callable[..., Any], args=None, *,
                 on_stop(node)
             node.destroy_node()
         rclpy.try_shutdown()
+        _process_args.clear()
+    failure = getattr(node, 'failure', None)
+    if failure:
+        print(f'error: {failure}', file=sys.stderr)
+        return 1
     return 0

@@ -356,10 +356,11 @@ def open_scene(scene: str, *, image_topic: str = '', folder_fps: float = 10.0) -
         raise SourceError(f'{path} is a file, not a scene: {SCENE_HELP}')
     if len(path.parts) != 1:
         raise SourceError(f'scene not found: {path}')
-    try:
-        root = data.resolve_data_root()
-    except DataError as exc:
-        raise SourceError(f'cannot look up the sequence {scene!r}: {exc}') from exc
+    root = data.default_data_root()
+    if root is None or not root.is_dir():
+        raise SourceError(f'cannot look up the sequence {scene!r}: no folder of annotated '
+                          f'sequences (set {data.ENV_VAR}=DIR, or give the sequence\'s '
+                          f'folder); the scene is otherwise {SCENE_HELP}')
     if (root / scene / data.META_FILE).is_file():
         return SequenceSource(root / scene)
     known = ', '.join(p.name for p in data.find_sequences(root)) or 'none'
@@ -413,6 +414,13 @@ class Pacer:
         self.rate = rate
         self._anchor: tuple[float, float] | None = None   # (stamp, wall time)
         self._last_stamp = -math.inf
+
+    def set_rate(self, rate: float) -> None:
+        """Change the speed from the next frame on (it is due at once, then at `rate`)."""
+        if not rate > 0:
+            raise SourceError(f'replay rate must be > 0, got {rate}')
+        self.rate = rate
+        self._anchor = None
 
     def due(self, stamp: float, now: float) -> float:
         if self._anchor is None or stamp < self._last_stamp:

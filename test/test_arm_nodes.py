@@ -161,3 +161,149 @@ def test_stop_on_purpose_while_another_thread_spins(arm_graph):
     finally:
         halt.set()
         thread.join()
+
+
+# -- any message the topic can carry (issue 13, item 5) -------------------------------------
+
+BAD_COMMANDS = [
+    (['base'], [1.0e308], 'not a finite angle'),           # finite rad, inf degrees
+    (['base'], [-1.0e308], 'not a finite angle'),
+    (['base'], [math.nan], 'not a finite angle'),
+    (['base'], [math.inf], 'not a finite angle'),
+    ([], [1.0e308] * 6, 'not a finite angle'),
+    (['base', 'elbow'], [1.0], '2 names for 1 positions'),
+    (['base'], [], '1 names for 0 positions'),
+    ([], [1.0] * 7, '7 positions without names'),
+    ([], [], '0 positions without names'),
+    (['neck'], [1.0], "unknown joints ['neck']"),
+    (['base', 'base'], [0.5, 2.5], 'joints named twice'),
+    (['Base'], [1.0], 'unknown joints'),
+]
+
+
+@pytest.mark.parametrize('names, positions, why', BAD_COMMANDS)
+def test_parse_command_says_why_a_command_is_malformed(names, positions, why):
+    from activeloc_ros.arm_node import parse_command
+    target, reason = parse_command(JointState(name=names, position=positions), HOME_DEG)
+    assert target is None and why in reason
+
+
+def test_every_bad_command_is_ignored_and_the_arm_lives_on(arm_graph):
+    executor, arm, probe = arm_graph('backend:=sim')
+    for count, (names, positions, _) in enumerate(BAD_COMMANDS, start=1):
+        probe.commands.publish(JointState(name=names, position=positions))
+        # a callback that raised would come out of spin_once here and fail the test
+        assert spin_until(executor, lambda: arm.rejected == count, 5.0), (names, positions)
+    assert arm.sim.target == HOME_DEG
+    probe.commands.publish(command((100.0,) + HOME_DEG[1:]))
+    assert spin_until(executor, lambda: arm.sim.target[0] == 100, 5.0)  # still listening
+
+
+def test_random_commands_never_leave_the_joint_limits(arm_graph):
+    """Seeded fuzz over what a JointState can carry: the node never raises, and its target
+    is always inside the limits."""
+    import random
+    executor, arm, probe = arm_graph('backend:=sim')
+    rng = random.Random(13)
+    values = [0.0, -0.0, 1e-320, 1.0, -1.0, 3.2, 1e308, -1e308, 1.8e308 * 10, math.nan,
+              5e-324, 2.0 ** 60]
+    for _ in range(2000):
+        n = rng.randint(0, 8)
+        names = rng.sample(list(JOINT_NAMES) * 2 + ['x', ''], k=min(n, 14)) if rng.random() < .8 \
+            else []
+        positions = [rng.choice(values) if rng.random() < .5 else rng.uniform(-10, 10)
+                     for _ in range(rng.choice([n, len(names), 6]))]
+        arm.on_command(JointState(name=names, position=positions))
+        assert within_limits(arm.sim.target)
+    assert arm.rejected > 100 and arm.clamped > 100
+
+
+# -- run-time parameters (item 8) -----------------------------------------------------------
+
+def set_remote(executor, probe, node_name, **values):
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+    client = AsyncParameterClient(probe.node, node_name)
+    assert spin_until(executor, lambda: client.services_are_ready(), 5.0)
+    future = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
+    executor.spin_until_future_complete(future, timeout_sec=5.0)
+    return future.result().results
+
+
+def test_arm_parameters_set_at_run_time_apply_or_are_refused(arm_graph):
+    executor, arm, probe = arm_graph('backend:=sim', 'sim_start_deg:=[70,90,45,45,90,73]',
+                                     'home_speed_deg_s:=60.0')
+    results = set_remote(executor, probe, 'arm', state_rate=5.0, stop_mode='home')
+    assert all(r.successful for r in results)
+    assert arm.state_timer.timer_period_ns == 200_000_000
+    for name, value in (('step_delay_ms', 10), ('backend', 'serial'), ('port', '/dev/x'),
+                        ('sim_start_deg', list(HOME_DEG))):
+        [result] = set_remote(executor, probe, 'arm', **{name: value})
+        assert not result.successful and 'read-only' in result.reason, name
+    [result] = set_remote(executor, probe, 'arm', state_rate=0.5)
+    assert not result.successful and 'out of range' in result.reason
+    assert arm.stop_on_purpose(executor)
+    assert arm.sim.joints == HOME_DEG  # the stop mode set at run time was used
+
+
+# -- a serial link that is missing or lost ends the node with an error (item 9) -------------
+
+def test_a_missing_serial_port_ends_the_node_with_an_error(arm_graph, tmp_path):
+    missing = str(tmp_path / 'ttyNothing')
+    executor, arm, probe = arm_graph('backend:=serial', f'port:={missing}',
+                                     'reconnect_period:=0.1', 'give_up_timeout:=0.5')
+    assert spin_until(executor, lambda: arm.finished, 5.0)
+    assert 'never connected for 0.5 s' in arm.failure and missing in arm.failure
+    assert 'No such file or directory' in arm.failure
+    assert probe.joints is None  # no made-up state was ever published
+
+
+def test_a_serial_link_lost_for_good_ends_the_node_with_an_error(arm_graph, tmp_path):
+    with ArduinoEmulator(path=str(tmp_path / 'ttyBRACCIO')) as emulator:
+        executor, arm, probe = arm_graph('backend:=serial', f'port:={emulator.path}',
+                                         'reconnect_period:=0.1', 'give_up_timeout:=0.5')
+        assert spin_until(executor, lambda: arm.link.state == 'connected', 10.0)
+        emulator.vanish()
+        assert spin_until(executor, lambda: arm.finished, 5.0)
+    assert 'lost for 0.5 s' in arm.failure
+
+
+def test_the_arm_process_exits_1_with_the_reason_when_the_port_is_missing(tmp_path):
+    import subprocess
+    import sys
+    from conftest import REPO
+    missing = str(tmp_path / 'ttyNothing')
+    process = subprocess.run(
+        [sys.executable, '-m', 'activeloc_ros.arm_node',
+         *params_args('arm', 'backend:=serial', f'port:={missing}', 'give_up_timeout:=0.3',
+                      'reconnect_period:=0.1')],
+        cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert process.returncode == 1, process.stdout + process.stderr
+    assert f'error: serial link to the arm on {missing} never connected' in process.stderr
+
+
+# -- /diagnostics (item 16) -----------------------------------------------------------------
+
+def test_the_serial_link_reports_its_health_on_diagnostics(arm_graph, tmp_path):
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    with ArduinoEmulator(path=str(tmp_path / 'ttyBRACCIO')) as emulator:
+        executor, arm, probe = arm_graph('backend:=serial', f'port:={emulator.path}',
+                                         'silence_timeout:=0.3', 'give_up_timeout:=0.0')
+        reports = []
+        probe.node.create_subscription(DiagnosticArray, '/diagnostics',
+                                       lambda m: reports.extend(m.status), 10)
+
+        def latest(level):
+            return spin_until(executor, lambda: reports and reports[-1].level == level, 10.0)
+
+        assert latest(DiagnosticStatus.OK)
+        probe.commands.publish(command(HOME_DEG))
+        assert spin_until(executor, lambda: HOME_DEG in emulator.host_writes(), 5.0)
+        assert spin_until(executor, lambda: dict(
+            (v.key, v.value) for v in reports[-1].values)['commands sent'] == '1', 5.0)
+        status = reports[-1]
+        assert (status.name, status.message, status.hardware_id) == (
+            'arm: serial link', 'connected', emulator.path)
+        emulator.vanish()
+        assert latest(DiagnosticStatus.ERROR)
+        assert 'disconnected' in reports[-1].message and 'lost' in reports[-1].message

@@ -191,3 +191,72 @@ def test_stop_on_purpose_holds_then_ignores_locations(graph):
     probe.send_location(300.0, 100.0, probe.now())
     spin_until(executor, lambda: len(probe.commands) > 2, 0.5)
     assert len(probe.commands) == 2 and controller.core.ignored == {}
+
+
+# -- parameters set at run time (issue 13, item 8): applied at once, or refused -------------
+
+def set_remote(executor, probe, **values):
+    """ros2 param set, over the node's real parameter service: the results."""
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+    client = AsyncParameterClient(probe.node, 'controller')
+    assert spin_until(executor, lambda: client.services_are_ready(), 5.0)
+    future = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
+    executor.spin_until_future_complete(future, timeout_sec=5.0)
+    return future.result().results
+
+
+def aim(executor, probe, u, stamp):
+    """One location `u` px; the base angle of the command it makes."""
+    count = len(probe.commands)
+    probe.send_location(u, CY, stamp)
+    assert spin_until(executor, lambda: len(probe.commands) > count, 5.0)
+    return degrees(probe.commands[-1])[0]
+
+
+def test_gains_and_limits_set_at_run_time_apply_to_the_next_command(graph):
+    executor, controller, probe = graph('settle_time:=0.0')
+    left = CX - 100.0  # the action 100 px left of the centre: turn left, base up
+    t = probe.now()
+    first = aim(executor, probe, left, t)
+    assert first > HOME_DEG[0]
+
+    [result] = set_remote(executor, probe, pan_limit_deg=0.0)
+    assert result.successful, result.reason
+    bases = [first]
+    while bases[-1] > HOME_DEG[0] + 1e-6 and len(bases) < 2000:  # the guard ramps at 50 deg/s
+        bases.append(aim(executor, probe, left, t + 0.001 * len(bases)))
+    assert bases[-1] == pytest.approx(HOME_DEG[0])  # back home, never further left
+    assert all(b <= a + 1e-9 for a, b in zip(bases, bases[1:]))
+
+    assert all(r.successful for r in set_remote(executor, probe, pan_limit_deg=180.0, kp=0.0))
+    assert aim(executor, probe, left, t + 5.0) == pytest.approx(HOME_DEG[0])  # kp 0: still
+    assert set_remote(executor, probe, kp=1.0)[0].successful
+    assert aim(executor, probe, left, t + 5.5) > HOME_DEG[0]
+
+
+@pytest.mark.parametrize('values, reason', [
+    ({'step_delay_ms': 10}, 'read-only'),        # must match the arm's servos
+    ({'home_deg': [90, 90, 45, 45, 90, 73]}, 'read-only'),
+    ({'pan_limit_deg': 500.0}, 'out of range'),
+    ({'kp': math.nan}, 'out of range'),
+    ({'kp': 'fast'}, 'Wrong parameter type'),
+    ({'watchdog_timeout': 0.0}, "'watchdog_timeout' must be > 0"),
+    ({'min_peak': math.nan}, 'min_peak must not be NaN'),
+])
+def test_a_run_time_change_that_would_not_apply_is_refused_with_the_reason(graph, values,
+                                                                            reason):
+    executor, controller, probe = graph()
+    before = {k: controller.get_parameter(k).value for k in values}
+    [result] = set_remote(executor, probe, **values)
+    assert not result.successful and reason in result.reason
+    assert {k: controller.get_parameter(k).value for k in values} == before
+
+
+def test_gains_under_a_pd_variant_are_refused_not_ignored(graph):
+    executor, controller, probe = graph('pd_variant:=paper')
+    [result] = set_remote(executor, probe, kp=0.2)
+    assert not result.successful and "pd_variant 'paper' sets the gains" in result.reason
+    results = set_remote(executor, probe, pd_variant='', kp=0.2)
+    assert all(r.successful for r in results)
+    assert (controller.config.pd.kp, controller.core.pd.config.kp) == (0.2, 0.2)

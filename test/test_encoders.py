@@ -342,6 +342,26 @@ def test_state_digest_survives_a_save_and_sees_one_changed_value():
     assert weights.state_digest(again) != weights.state_digest(state)
 
 
+@pytest.mark.parametrize('damage', ['zeroed', 'one_value'])
+def test_a_cached_file_of_the_right_name_but_wrong_weights_is_refused(tmp_path, damage):
+    """A zeroed or altered file would load and give features of nothing: the digest the
+    cache file is named by must match."""
+    require_cached('efficientnet_lite0')
+    good = weights.weights_path('efficientnet_lite0')
+    bad = tmp_path / good.name
+    if damage == 'zeroed':
+        bad.write_bytes(bytes(good.stat().st_size))
+        match = 'cannot be read'
+    else:
+        state = torch.load(good, weights_only=True)
+        next(iter(state.values())).view(-1)[0] += 1
+        torch.save(state, bad)
+        match = 'not the ones fetched'
+    with pytest.raises(WeightsError, match=match) as info:
+        weights.weights_path('efficientnet_lite0', cache=tmp_path)
+    assert 'fetch' in str(info.value)
+
+
 def test_fetch_is_a_no_op_when_the_cache_is_current(monkeypatch, capsys):
     require_cached('efficientnet_lite0')
     forbid_network(monkeypatch)

@@ -1,4 +1,6 @@
 """Every key of params/<node>.yaml is a declared parameter of that node, with a description."""
+import math
+
 import pytest
 import yaml
 
@@ -37,3 +39,109 @@ def test_perception_yaml_repeats_the_model_defaults():
     for field in dataclasses.fields(PerceptionConfig):
         assert field.name in values, f'perception.yaml lacks {field.name}'
         assert values[field.name] == field.default, f'perception.yaml: stale {field.name}'
+
+
+# -- params files: nothing in them passes in silence (issue 13, item 9) ---------------------
+
+def user_file(tmp_path, text: str) -> str:
+    path = tmp_path / 'user.yaml'
+    path.write_text(text)
+    return str(path)
+
+
+@pytest.mark.parametrize('node, text, message', [
+    ('controller', "/**:\n  ros__parameters:\n    kp: 'fast'\n",
+     r"'kp' must be a double, got 'fast' \(string\)"),
+    ('controller', '/controller:\n  ros__parameters:\n    kp: 1\n',
+     r"'kp' must be a double \(write 1.0\), got 1 \(integer\)"),
+    ('controller', '/controller:\n  ros__parameters:\n    kpp: 0.5\n',
+     r"'kpp' is not a parameter of node 'controller' \(did you mean 'kp'\?\)"),
+    ('controller', '/**:\n  ros__parameters:\n    kpp: 0.5\n',
+     r"'kpp' is not a parameter of node 'controller'"),
+    ('arm', "/arm_node:\n  ros__parameters:\n    stop_mode: 'home'\n",
+     r"section '/arm_node' names no node of activeloc_ros.*did you mean /arm\?"),
+    ('arm', '/arm:\n  ros__parameters:\n    home_deg: [90.0, 90.0]\n',
+     r"'home_deg' must be a integer array"),
+])
+def test_a_params_file_mistake_stops_the_node_naming_file_and_key(context, tmp_path, node,
+                                                                   text, message):
+    from activeloc_ros.errors import ConfigError
+    path = user_file(tmp_path, text)
+    with pytest.raises(ConfigError, match=message) as error:
+        node_class(node)(context=context,
+                         cli_args=params_args(node) + ['--params-file', path])
+    assert path in str(error.value)
+
+
+@pytest.mark.parametrize('text', [
+    # a shared file: each node takes its own keys, the others' are for them
+    "/**:\n  ros__parameters:\n    kp: 0.5\n    stop_mode: 'home'\n    overlay_alpha: 0.3\n",
+    "/robot1/controller:\n  ros__parameters:\n    kp: 0.5\n/arm:\n  ros__parameters:\n"
+    "    stop_mode: 'home'\n",
+    '/**:\n  ros__parameters:\n    kd: 1.0e-1\n    derivative_tau: 1e-2\n'])  # rcl's numbers
+def test_a_shared_params_file_is_accepted(context, tmp_path, text):
+    path = user_file(tmp_path, text)
+    node = node_class('controller')(context=context,
+                                    cli_args=params_args('controller') + ['--params-file', path])
+    try:
+        assert node.get_parameter('kp').value in (0.5, 1.0)
+    finally:
+        node.destroy_node()
+
+
+def test_an_unreadable_params_file_stops_the_process_with_its_line(tmp_path, capsys):
+    from activeloc_ros.arm_node import main
+    path = user_file(tmp_path, '/arm:\n  ros__parameters:\n    stop_mode: [1\n')
+    assert main(['arm_node', '--ros-args', '--params-file', path]) == 1
+    error = capsys.readouterr().err
+    assert f'params file {path} cannot be read' in error and 'line 4' in error
+
+
+def test_params_file_problems_is_a_pure_function():
+    from rclpy.parameter import Parameter
+    from activeloc_ros.ros_params import params_file_problems
+    declared = {'kp': Parameter.Type.DOUBLE, 'tilt_joints': Parameter.Type.STRING_ARRAY}
+    content = {'/**': {'ros__parameters': {'kp': 2.0, 'stop_mode': 'home',
+                                           'tilt_joints': ['a', 1]}},
+               'contoller': {'ros__parameters': {}},
+               '/controller': {'ros__parameters': {'qos': {'depth': 1}}}}
+    problems = params_file_problems(content, 'controller', declared, {'stop_mode'})
+    assert len(problems) == 3, problems
+    assert "'tilt_joints' must be a string array" in problems[0]
+    assert 'did you mean /controller?' in problems[1]
+    assert "'qos.depth' is not a parameter" in problems[2]
+    assert params_file_problems([1, 2], 'arm', declared) != []
+
+
+# -- descriptors carry the ranges (item 16), rclpy enforces them ----------------------------
+
+@pytest.mark.parametrize('node, name, kind, bounds', [
+    ('controller', 'pan_limit_deg', 'floating_point_range', (0.0, 180.0)),
+    ('controller', 'step_delay_ms', 'integer_range', (10, 30)),
+    ('controller', 'kp', 'floating_point_range', (0.0, None)),
+    ('arm', 'state_rate', 'floating_point_range', (1.0, 500.0)),
+    ('arm', 'step_delay_ms', 'integer_range', (10, 30)),
+    ('perception', 'overlay_alpha', 'floating_point_range', (0.0, 1.0))])
+def test_ranges_are_in_the_descriptors(context, node, name, kind, bounds):
+    made = node_class(node)(context=context, cli_args=params_args(node))
+    try:
+        ranges = getattr(made.describe_parameter(name), kind)
+        assert len(ranges) == 1
+        assert ranges[0].from_value == bounds[0]
+        if bounds[1] is not None:
+            assert ranges[0].to_value == bounds[1]
+    finally:
+        made.destroy_node()
+
+
+def test_rclpy_enforces_the_descriptor_ranges(context):
+    from rclpy.parameter import Parameter
+    node = node_class('controller')(context=context, cli_args=params_args('controller'))
+    try:
+        for value in (-0.1, 180.5, math.nan, math.inf):
+            result = node.set_parameters([Parameter('pan_limit_deg', value=value)])[0]
+            assert not result.successful and 'out of range' in result.reason, value
+        assert node.set_parameters([Parameter('kp', value=math.inf)])[0].successful is False
+        assert node.get_parameter('pan_limit_deg').value == 180.0
+    finally:
+        node.destroy_node()

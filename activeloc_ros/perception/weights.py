@@ -127,11 +127,39 @@ def weights_path(name: str, *, cache: str | Path | None = None) -> Path:
         raise ConfigError(f'unknown encoder {name!r}; choose one of '
                           f'{", ".join(encoders.ENCODERS)}')
     path = cache_dir(cache) / file_name(name)
+    where = f' --cache {cache}' if cache is not None else ''
     if not path.is_file():
-        where = f' --cache {cache}' if cache is not None else ''
         raise WeightsError(f'{name} weights are not in the cache ({path}); fetch them once '
                            f'with: {FETCH_COMMAND} --encoders {name}{where}')
+    check_cached(name, path, fix=f'{FETCH_COMMAND} --encoders {name}{where}')
     return path
+
+
+# (path, size, mtime) of cached files whose digest was checked in this process
+_checked: set[tuple[str, int, int]] = set()
+
+
+def check_cached(name: str, path: Path, *, fix: str) -> None:
+    """Raise WeightsError unless `path` holds exactly the state dict `fetch` wrote.
+
+    A file of the right name can still be wrong (damaged, zeroed, replaced): its weights
+    would load and silently give features of nothing. Checked once per process and file.
+    """
+    stat = path.stat()
+    key = (str(path), stat.st_size, stat.st_mtime_ns)
+    if key in _checked:
+        return
+    expected = SOURCES[name].state_sha256
+    try:
+        digest = state_digest(encoders.read_state_dict(path))
+    except WeightsError as exc:
+        raise WeightsError(f'the cached {name} weights cannot be read ({exc}); fetch them '
+                           f'again with: {fix}') from exc
+    if digest != expected:
+        raise WeightsError(f'the cached {name} weights {path} are not the ones fetched: their '
+                           f'digest is {digest[:12]}..., expected {expected[:12]}... (the '
+                           f'file was changed or damaged); fetch them again with: {fix}')
+    _checked.add(key)
 
 
 def state_digest(state: dict[str, torch.Tensor]) -> str:

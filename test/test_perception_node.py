@@ -1,0 +1,110 @@
+"""The perception node as a ROS 2 user's camera meets it: QoS, compressed frames, a stamped
+map image, hostile sizes and its health on /diagnostics."""
+import time
+
+import cv2
+import numpy as np
+import pytest
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, qos_profile_sensor_data, ReliabilityPolicy
+
+from conftest import params_args, spin_until
+
+FRAME = np.random.default_rng(0).integers(0, 255, (60, 80, 3), dtype=np.uint8)
+
+
+@pytest.fixture
+def rig(context):
+    """A perception node (real weights, packaged params) and a probe node in one executor."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from sensor_msgs.msg import Image
+    from activeloc_ros.perception_node import PerceptionNode
+    made = []
+
+    def make(*overrides):
+        node = PerceptionNode(context=context, cli_args=params_args(
+            'perception', 'diagnostics_period:=0.2', *overrides))
+        probe = Node('probe', context=context)
+        heard = {'maps': [], 'diagnostics': []}
+        probe.create_subscription(Image, 'surprise_map/image', heard['maps'].append, 10)
+        probe.create_subscription(DiagnosticArray, '/diagnostics',
+                                  heard['diagnostics'].append, 10)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        executor.add_node(probe)
+        made.append((executor, node, probe))
+        return executor, node, probe, heard
+
+    yield make
+    for executor, node, probe in made:
+        executor.shutdown()
+        node.destroy_node()
+        probe.destroy_node()
+
+
+def feed(executor, publisher, msg, condition, timeout=60.0) -> bool:
+    """Publish `msg` (re-stamped) until `condition()`; discovery and depth 1 may drop some."""
+    deadline = time.monotonic() + timeout
+    while not condition() and time.monotonic() < deadline:
+        publisher.publish(msg)
+        spin_until(executor, condition, 0.5)
+    return condition()
+
+
+def image(header_frame='cam', stamp_s=7):
+    from sensor_msgs.msg import Image
+    from activeloc_ros.images import rgb_to_image_fields
+    msg = Image(**rgb_to_image_fields(FRAME))
+    msg.header.frame_id = header_frame
+    msg.header.stamp.sec = stamp_s
+    return msg
+
+
+@pytest.mark.parametrize('qos', ['best_effort', 'reliable'])
+def test_a_camera_of_either_reliability_is_heard(rig, qos):
+    """SensorDataQoS drivers publish best effort, which a reliable subscription never hears."""
+    from sensor_msgs.msg import Image
+    executor, node, probe, heard = rig()
+    profile = (qos_profile_sensor_data if qos == 'best_effort'
+               else QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    publisher = probe.create_publisher(Image, 'camera/image_raw', profile)
+    assert feed(executor, publisher, image(), lambda: len(heard['maps']) >= 2)
+    assert node.sub.qos_profile.reliability == profile.reliability
+
+
+def test_the_map_image_carries_the_frames_header(rig):
+    from sensor_msgs.msg import Image
+    executor, node, probe, heard = rig()
+    publisher = probe.create_publisher(Image, 'camera/image_raw', 10)
+    assert feed(executor, publisher, image('optical', 7), lambda: len(heard['maps']) >= 2)
+    msg = heard['maps'][-1]
+    assert (msg.encoding, msg.height, msg.width) == ('32FC1', 14, 14)
+    assert msg.header.frame_id == 'optical' and msg.header.stamp.sec == 7
+    values = np.frombuffer(bytes(msg.data), np.float32)
+    assert values.shape == (196,) and abs(values.sum() - 1.0) < 1e-3
+
+
+def test_compressed_frames_are_decoded(rig):
+    from sensor_msgs.msg import CompressedImage
+    executor, node, probe, heard = rig('image_transport:=compressed')
+    publisher = probe.create_publisher(CompressedImage, 'camera/image_raw/compressed', 10)
+    ok, jpeg = cv2.imencode('.jpg', cv2.cvtColor(FRAME, cv2.COLOR_RGB2BGR))
+    assert ok
+    msg = CompressedImage(format='jpeg', data=jpeg.tobytes())
+    assert feed(executor, publisher, msg, lambda: len(heard['maps']) >= 2)
+
+
+def test_an_oversized_frame_is_skipped_and_reported(rig):
+    from sensor_msgs.msg import Image
+    from activeloc_ros.health import WARN
+    executor, node, probe, heard = rig(f'max_image_pixels:={60 * 80 - 1}')
+    publisher = probe.create_publisher(Image, 'camera/image_raw', 10)
+    assert feed(executor, publisher, image(), lambda: node.stats.skipped)
+    assert not heard['maps']
+    assert 'max_image_pixels' in next(iter(node.stats.skipped))
+
+    def warned():
+        return any(s.level == bytes([WARN]) and 'skipping' in s.message
+                   for d in heard['diagnostics'] for s in d.status)
+    assert spin_until(executor, warned, 5.0)
