@@ -9,15 +9,29 @@ Each node runs in its own process (as a launch file would) with its `params/<nod
 or all in one executor with --in-process. A status line shows frames/s, frame-to-command
 latency (lockstep: the simulated time) and the action location; Ctrl-C stops the nodes in
 order (the arm last, holding still) and a summary closes the run. Exits non-zero if a node
-fails or nothing was seen.
+fails, logs an error, the recording fails or nothing was seen.
+
+Ctrl-C (once or more) and SIGTERM stop the graph the same way and close the bag; the nodes
+also end if bringup itself is killed (they get SIGTERM when their parent dies), and a bag
+cut off by a kill is made readable by `python -m activeloc_ros.bag reindex PATH`. Every
+node's parameters are checked before any node starts. Node errors appear on this console.
+
+    python -m activeloc_ros.bringup --ros-args -r __ns:=/robot1     # passed to every node
+
+Arguments after --ros-args (up to an optional --) go to every node, as `ros2 run` takes
+them: a namespace (-r __ns:=/robot1) lets two robots share a network; remaps, -p and
+--params-file work too. The monitor and the recorder run in the same namespace.
 
 --mode lockstep (virtual camera, simulated arm) runs every node on simulated time that the
 camera steps frame by frame, as `closed_loop` does; `camera/pose` then holds, at each
 image's stamp, the pan and tilt the camera rendered with (`lockstep.recorded_poses`).
 """
 import argparse
+import ctypes
+import math
 import os
 from pathlib import Path
+import re
 import signal
 import subprocess
 import sys
@@ -33,14 +47,56 @@ from activeloc_ros.sources import default_bag
 
 MODES = ('realtime', 'lockstep')
 NODES = ('camera', 'perception', 'controller', 'arm')   # start and stop order: the arm last
+# What the nodes publish (README, "The graph"): a recording subscribes to these before any
+# node starts, so it holds every message from the first on.
+GRAPH_TOPICS = {
+    'camera/image_raw': 'sensor_msgs/msg/Image',
+    'camera/camera_info': 'sensor_msgs/msg/CameraInfo',
+    'surprise_map': 'std_msgs/msg/Float32MultiArray',
+    'surprise_map/image': 'sensor_msgs/msg/Image',
+    'surprise_map/overlay': 'sensor_msgs/msg/Image',
+    'action_location': 'geometry_msgs/msg/PointStamped',
+    'action_location/ignored': 'geometry_msgs/msg/PointStamped',
+    'joint_commands': 'sensor_msgs/msg/JointState',
+    'joint_states': 'sensor_msgs/msg/JointState',
+}
 STARTUP_DEADLINE_S = 180.0    # model and weights load before the first map
 DRAIN_QUIET_S = 2.0           # after the camera ends: stop once no map came for this long
 STOP_DEADLINE_S = 10.0
+ARM_STALE_S = 2.0             # realtime: no joint_states for this long at the end is reported
+# A node's log line that bringup repeats on its console: errors, not warnings.
+ERROR_LINE = re.compile(r'\[(ERROR|FATAL)\]|^error:|^\w*Error\b|^Traceback')
+MAX_ECHOED = 10               # error lines repeated per node; the rest stay in its log
+
+
+def finite(text: str) -> float:
+    """argparse type: a finite number (`nan` and `inf` are refused)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'not a number: {text!r}') from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f'must be a finite number, got {text!r}')
+    return value
+
+
+def split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
+    """bringup's own arguments, and those after --ros-args (up to an optional --)."""
+    if '--ros-args' not in argv:
+        return list(argv), []
+    i = argv.index('--ros-args')
+    rest = argv[i + 1:]
+    if '--' in rest:
+        j = rest.index('--')
+        return argv[:i] + rest[j + 1:], rest[:j]
+    return argv[:i], rest
 
 
 def parse_args(argv):
+    argv, ros_args = split_ros_args(list(argv))
     parser = argparse.ArgumentParser(prog='python -m activeloc_ros.bringup', description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+                                     formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     usage='%(prog)s [options] [--ros-args ARGS... [--]]')
     parser.add_argument('--camera', default=f'virtual:bag:{default_bag()}',
                         help='camera source: bag:PATH, video:PATH, folder:PATH, device:N, '
                              'realsense or virtual:SCENE, the scene (bag:PATH, video:PATH, '
@@ -57,15 +113,17 @@ def parse_args(argv):
                         help='extra ROS 2 params file applied to every node after the '
                              'defaults in params/ (may be repeated)')
     parser.add_argument('--record', type=Path, help='record every topic to this MCAP bag folder')
-    parser.add_argument('--duration', type=float, default=0.0,
+    parser.add_argument('--duration', type=finite, default=0.0,
                         help='stop after this many seconds (default: when the source ends)')
-    parser.add_argument('--rate', type=float, default=1.0, help='bag/video replay speed')
+    parser.add_argument('--rate', type=finite, default=1.0, help='bag/video replay speed')
     parser.add_argument('--loop', action='store_true', help='loop recorded sources')
     parser.add_argument('--in-process', action='store_true',
                         help='run all nodes in this process, in one executor')
     parser.add_argument('--log-dir', type=Path, default=None,
                         help='where node logs go (default: out/bringup-<time>)')
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    args.ros_args = ros_args
+    return args
 
 
 def node_arguments(node: str, args) -> list[str]:
@@ -79,6 +137,8 @@ def node_arguments(node: str, args) -> list[str]:
         ros_args += ['-p', f'source:={args.camera}', '-p', f'rate:={args.rate}',
                      '-p', f'loop:={str(args.loop).lower()}',
                      '-p', f'lockstep:={str(args.mode == "lockstep").lower()}']
+        if args.record is not None:         # perception and the recorder
+            ros_args += ['-p', 'min_subscribers:=2']
     if node == 'controller':
         for name, value in screen_aim_limits(args.camera, args.params).items():
             ros_args += ['-p', f'{name}:={value!r}']
@@ -87,17 +147,13 @@ def node_arguments(node: str, args) -> list[str]:
         ros_args += ['-p', f'backend:={backend}']
         if port:
             ros_args += ['-p', f'port:={port}']
-    return ros_args
+    return ros_args + args.ros_args
 
 
-def file_params(node: str, files) -> dict:
-    """The parameters that ROS 2 params `files` give `node`, later files winning."""
-    values = {}
-    for path in files:
-        for key, section in (yaml.safe_load(Path(path).read_text()) or {}).items():
-            if key.lstrip('/') in ('**', node):
-                values.update(section.get('ros__parameters') or {})
-    return values
+def own_ros_args(args) -> list[str] | None:
+    """The --ros-args for bringup's own nodes (monitor, recorder): the user's, so they share
+    the graph's namespace and remaps."""
+    return ['--ros-args', *args.ros_args] if args.ros_args else None
 
 
 def screen_aim_limits(camera: str, files) -> dict[str, float]:
@@ -105,21 +161,29 @@ def screen_aim_limits(camera: str, files) -> dict[str, float]:
     screen, as the screen benchmark sets them; limits set in the user's `files` win."""
     if not camera.startswith('virtual:'):
         return {}
+    from activeloc_ros.ros_params import file_values
     from activeloc_ros.camera_node import PARAMS, SCREEN_FIELDS
     from activeloc_ros.screen import ScreenConfig, VirtualScreen
     values = {p.name: p.default for p in PARAMS}
-    values.update(file_params('camera', [share_path('params/camera.yaml'), *files]))
+    values.update(file_values('camera', [share_path('params/camera.yaml'), *files]))
     screen = VirtualScreen(ScreenConfig(**{field: values[name]
                                            for name, field in SCREEN_FIELDS.items()}))
-    own = file_params('controller', files)
+    own = file_values('controller', files)
     return {name: limit
             for name, limit in zip(('pan_limit_deg', 'tilt_limit_deg'), screen.aim_limits_deg())
             if name not in own}
 
 
+CAMERA_FORMS = {'bag': 'bag:PATH', 'video': 'video:PATH', 'folder': 'folder:PATH',
+                'device': 'device:N', 'virtual': 'virtual:SCENE'}
+
+
 def preflight(args) -> None:
     """Every check that can fail before a node starts, with a clear message."""
     kind, _, target = args.camera.partition(':')
+    if kind in CAMERA_FORMS and not target:
+        raise ConfigError(f'--camera {args.camera!r} names no {kind}: use '
+                          f'{CAMERA_FORMS[kind]}')
     if kind == 'bag':
         from activeloc_ros import bag
         bag.choose_image_topic(bag.bag_facts(Path(target)))
@@ -133,19 +197,88 @@ def preflight(args) -> None:
             source.close()
     elif kind not in ('device', 'realsense'):
         raise ConfigError(f'unknown --camera {args.camera!r}')
-    backend = args.arm.partition(':')[0]
-    if backend not in ('sim', 'serial'):
-        raise ConfigError(f"unknown --arm {args.arm!r}: use 'sim' or 'serial:PORT'")
+    backend, _, port = args.arm.partition(':')
+    if backend not in ('sim', 'serial') or (backend == 'serial') != bool(port):
+        raise ConfigError(f"--arm {args.arm!r}: use 'sim' or 'serial:PORT' (e.g. "
+                          "serial:/dev/ttyACM0)")
     if args.mode == 'lockstep' and (kind != 'virtual' or backend != 'sim'):
         raise ConfigError('--mode lockstep steps a simulation: it needs --camera virtual:SCENE '
                           'and --arm sim')
     files = [share_path(f'params/{node}.yaml') for node in NODES] + list(args.params)
     for file in files:
         check_params_file(Path(file))
-    if args.record is not None and args.record.exists():
-        raise ConfigError(f'--record {args.record} exists already; choose a new path')
+    check_node_params(args)
+    if args.record is not None:
+        if args.record.exists():
+            raise ConfigError(f'--record {args.record} exists already; choose a new path')
+        writable_folder(args.record.parent, '--record')
     if args.duration < 0 or args.rate <= 0:
         raise ConfigError('--duration must be >= 0 and --rate > 0')
+
+
+def writable_folder(path: Path, option: str) -> None:
+    """Raise ConfigError unless `path` is, or can become, a folder this process writes in."""
+    existing = path
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ConfigError(f'{option}: {existing} is not a folder, so {path} cannot be one')
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ConfigError(f'{option}: cannot write in {existing} (permission denied)')
+
+
+def node_params(node: str) -> list:
+    """The parameters a node declares."""
+    if node == 'perception':
+        from activeloc_ros.perception_node import model_params, NODE_PARAMS
+        return model_params() + NODE_PARAMS
+    module = __import__(f'activeloc_ros.{node}_node', fromlist=['PARAMS'])
+    return list(module.PARAMS)
+
+
+def cli_values(ros_args: list[str]) -> dict:
+    """The ``-p name:=value`` settings among ROS arguments, typed as rcl types them."""
+    from activeloc_ros.ros_params import parse_value
+    values = {}
+    for flag, item in zip(ros_args, ros_args[1:]):
+        if flag in ('-p', '--param') and ':=' in item:
+            name, _, text = item.partition(':=')
+            values[name] = parse_value(text)
+    return values
+
+
+def check_node_params(args) -> None:
+    """Check every node's parameters, from its files and bringup's options, as the node
+    checks them at start, so that a bad value stops the run before any node starts."""
+    from activeloc_ros.ros_params import file_values, files_problems, validate
+    problems = []
+    for node in NODES:
+        params = node_params(node)
+        files = [share_path(f'params/{node}.yaml'), *args.params]
+        found = files_problems(node, params, files)
+        if not found:
+            values = {p.name: p.default for p in params}
+            values.update(file_values(node, files))
+            values.update(cli_values(args.ros_args))
+            found = validate(params, values) or node_problems(node, values)
+        problems += [f'{node}: {p}' for p in found]
+    if problems:
+        raise ConfigError('bad parameters, no node started:\n  ' + '\n  '.join(problems))
+
+
+def node_problems(node: str, values: dict) -> list[str]:
+    """The checks across parameters that a node makes at start."""
+    try:
+        if node == 'controller':
+            from activeloc_ros.controller_node import config_from
+            config_from(values)
+        elif node == 'perception':
+            from activeloc_ros.perception.model import PerceptionConfig
+            PerceptionConfig.from_dict({k: v for k, v in values.items()
+                                        if k in PerceptionConfig.descriptions()})
+    except ConfigError as exc:
+        return [str(exc)]
+    return []
 
 
 def check_params_file(path: Path) -> None:
@@ -168,12 +301,12 @@ class Monitor:
     the monitor shows how far the simulated clock got instead of a latency.
     """
 
-    def __init__(self, context, *, lockstep: bool = False):
+    def __init__(self, context, *, lockstep: bool = False, cli_args=None):
         from geometry_msgs.msg import PointStamped
         from rclpy.node import Node
         from sensor_msgs.msg import CameraInfo, JointState
         from std_msgs.msg import Float32MultiArray
-        self.node = Node('bringup_monitor', context=context)
+        self.node = Node('bringup_monitor', context=context, cli_args=cli_args)
         self.lock = threading.Lock()
         self.frames, self.maps, self.commands = [], [], []
         self.latencies: list[float] = []
@@ -182,6 +315,7 @@ class Monitor:
         self.lockstep = lockstep
         self.sim_time = 0.0            # lockstep: the newest frame's simulated time, s
         self.joints: dict[str, float] = {}
+        self.joints_at = -math.inf     # when the last joint_states came
         sub = self.node.create_subscription
         sub(CameraInfo, 'camera/camera_info', self.on_info, 10)
         sub(Float32MultiArray, 'surprise_map', lambda m: self._stamp(self.maps), 10)
@@ -212,6 +346,7 @@ class Monitor:
 
     def on_state(self, msg):
         self.joints = dict(zip(msg.name, np.degrees(msg.position)))
+        self.joints_at = time.monotonic()
 
     @staticmethod
     def rate(series, window=3.0) -> float:
@@ -240,7 +375,19 @@ class Monitor:
                 f'{joints or "arm: no state yet"}')
 
 
+PR_SET_PDEATHSIG = 1          # prctl(2)
+
+
+def _die_with_parent() -> None:
+    """In a child before exec: SIGTERM it when bringup dies, even of SIGKILL (Linux)."""
+    if sys.platform.startswith('linux'):
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
 class Child:
+    """One node process, in a session of its own (a terminal's Ctrl-C reaches bringup only,
+    which stops the nodes in order) that ends when bringup ends, however it ends."""
+
     def __init__(self, node: str, args, log_dir: Path, env):
         self.name = node
         self.log_path = log_dir / f'{node}.log'
@@ -248,7 +395,8 @@ class Child:
         self.log = open(self.log_path, 'w')
         self.process = subprocess.Popen(
             [sys.executable, '-u', '-m', module] + node_arguments(node, args),
-            stdout=self.log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+            stdout=self.log, stderr=subprocess.STDOUT, env=env, start_new_session=True,
+            preexec_fn=_die_with_parent)
 
     @property
     def returncode(self):
@@ -270,6 +418,14 @@ class Child:
 
     def tail(self, lines: int = 15) -> str:
         return '\n'.join(self.log_path.read_text(errors='replace').splitlines()[-lines:])
+
+    def errors(self) -> list[str]:
+        """The error lines of the node's log (ERROR_LINE)."""
+        try:
+            text = self.log_path.read_text(errors='replace')
+        except OSError:
+            return []
+        return [line for line in text.splitlines() if ERROR_LINE.search(line)]
 
 
 class InProcessGraph:
@@ -321,21 +477,69 @@ def percentile_text(monitor: Monitor) -> str:
     return f'p50 {p50:.0f} ms, p95 {p95:.0f} ms over {len(monitor.latencies)} commands'
 
 
-def run(args) -> int:
-    import rclpy
-    preflight(args)
+class StopRequest:
+    """SIGINT and SIGTERM ask bringup to stop; the graph is then stopped in order and the
+    bag closed. A signal while stopping is told to wait, not obeyed."""
+
+    def __init__(self):
+        self.reason: str | None = None
+        self._previous = {}
+
+    def install(self) -> None:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._previous[sig] = signal.signal(sig, self._on_signal)
+
+    def restore(self) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+    def _on_signal(self, signum, frame) -> None:
+        name = 'Ctrl-C' if signum == signal.SIGINT else signal.Signals(signum).name
+        if self.reason is None:
+            self.reason = name
+        else:
+            print(f'\n{name}: already stopping the nodes and closing the recording, '
+                  'please wait', file=sys.stderr, flush=True)
+
+
+def make_log_dir(args) -> Path:
     log_dir = args.log_dir or Path('out') / time.strftime('bringup-%Y%m%d-%H%M%S')
-    log_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        log_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f'--log-dir {log_dir}: cannot create it ({exc.strerror})') from exc
+    return log_dir
+
+
+def run(args) -> int:
+    preflight(args)
+    log_dir = make_log_dir(args)
+    stop = StopRequest()
+    stop.install()
+    try:
+        return run_graph(args, log_dir, stop)
+    finally:
+        stop.restore()
+
+
+def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
+    import rclpy
     context = rclpy.Context()
     rclpy.init(context=context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     from rclpy.executors import SingleThreadedExecutor
-    monitor = Monitor(context, lockstep=args.mode == 'lockstep')
+    monitor = Monitor(context, lockstep=args.mode == 'lockstep', cli_args=own_ros_args(args))
     watch = SingleThreadedExecutor(context=context)
     watch.add_node(monitor.node)
     recorder = None
     if args.record is not None:
         from activeloc_ros.recorder import RecorderNode
-        recorder = RecorderNode(args.record, context=context)
+        expected = dict(GRAPH_TOPICS)
+        if args.camera.startswith('virtual:'):
+            expected['camera/pose'] = 'sensor_msgs/msg/JointState'
+        if args.mode == 'lockstep':
+            expected['/clock'] = 'rosgraph_msgs/msg/Clock'
+        recorder = RecorderNode(args.record, expected=expected, context=context,
+                                cli_args=own_ros_args(args))
         watch.add_node(recorder)
     stop_watch = threading.Event()
 
@@ -363,6 +567,13 @@ def run(args) -> int:
         while True:
             time.sleep(0.2)
             elapsed = time.monotonic() - start
+            if stop.reason is not None:
+                reason = stop.reason
+                break
+            if recorder is not None and recorder.error is not None:
+                reason = f'recording failed: {recorder.error}'
+                failed.append(None)
+                break
             for child in children:
                 code = child.returncode
                 if code is not None and (child.name != 'camera' or code != 0) \
@@ -389,7 +600,7 @@ def run(args) -> int:
                 last_print = elapsed
                 line = monitor.status(elapsed)
                 print(('\r' + line) if tty else line, end='' if tty else '\n', flush=True)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:     # a SIGINT before the handler was in place
         reason = 'Ctrl-C'
     except ActivelocError as exc:
         reason = str(exc)
@@ -412,10 +623,19 @@ def run(args) -> int:
     for child in failed:
         if child is not None:
             print(f'--- last lines of {child.log_path} ---\n{child.tail()}', file=sys.stderr)
+    errors = {child.name: child.errors() for child in children if child not in failed}
+    for name, lines in errors.items():
+        for line in lines[:MAX_ECHOED]:
+            print(f'{name}: {line}', file=sys.stderr)
+        if len(lines) > MAX_ECHOED:
+            print(f'{name}: ... {len(lines) - MAX_ECHOED} more error lines in '
+                  f'{log_dir / (name + ".log")}', file=sys.stderr)
+    if recorder is not None and recorder.error is not None and 'recording' not in reason:
+        failed.append(None)
     print(summary(monitor, elapsed, reason, codes, recorder))
     monitor.node.destroy_node()
     rclpy.try_shutdown(context=context)
-    return 1 if failed or not monitor.maps else 0
+    return 1 if failed or any(errors.values()) or not monitor.maps else 0
 
 
 def summary(monitor: Monitor, elapsed: float, reason: str, codes: dict, recorder) -> str:
@@ -431,18 +651,30 @@ def summary(monitor: Monitor, elapsed: float, reason: str, codes: dict, recorder
         lines.append(f'  last action location ({monitor.location[0]:.0f}, '
                      f'{monitor.location[1]:.0f}) in a {monitor.image_size} image')
     if monitor.joints:
+        age = time.monotonic() - monitor.joints_at
+        stale = (f' (STALE: the arm said nothing for its last {age:.1f} s)'
+                 if not monitor.lockstep and age > ARM_STALE_S else '')
         lines.append('  final arm pose (deg): ' + ', '.join(
-            f'{n} {d:.1f}' for n, d in monitor.joints.items()))
+            f'{n} {d:.1f}' for n, d in monitor.joints.items()) + stale)
     if codes:
         lines.append('  node exit codes: ' + ', '.join(f'{n} {c}' for n, c in codes.items()))
     if recorder is not None:
         counts = ', '.join(f'{t} {n}' for t, n in sorted(recorder.counts.items()))
         lines.append(f'  recorded {recorder.path}: {counts}')
+        if recorder.error is not None:
+            lines.append(f'  RECORDING FAILED: {recorder.error}')
     return '\n'.join(lines)
 
 
 def main(argv=None) -> int:
     args = parse_args(sys.argv[1:] if argv is None else argv)
+    try:
+        import rclpy  # noqa: F401
+    except ModuleNotFoundError:
+        print("bringup: error: rclpy is not installed: source a ROS 2 Jazzy (source "
+              "/opt/ros/jazzy/setup.bash) or install the PyPI wheels with pip install "
+              "'.[ros]'", file=sys.stderr)
+        return 2
     try:
         return run(args)
     except ActivelocError as exc:

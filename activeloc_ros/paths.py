@@ -2,21 +2,25 @@
 import hashlib
 import os
 from pathlib import Path
+import sys
 import tempfile
 
 SOURCE_ROOT = Path(__file__).resolve().parents[1]
 
 
 def share_path(relative: str) -> Path:
-    """`relative` (e.g. 'params/camera.yaml') in the source tree, else in the installed share."""
+    """`relative` (e.g. 'params/camera.yaml') in the source tree, else in the installed
+    share: the ament index's (colcon) or, without one, pip's (``<prefix>/share``)."""
     here = SOURCE_ROOT / relative
     if here.exists():
         return here
     try:
         from ament_index_python.packages import get_package_share_directory
         return Path(get_package_share_directory('activeloc_ros')) / relative
-    except (ImportError, LookupError):
-        return here
+    except (ImportError, LookupError, OSError):   # OSError: AMENT_PREFIX_PATH is not set
+        pass
+    installed = Path(sys.prefix) / 'share' / 'activeloc_ros' / relative
+    return installed if installed.exists() else here
 
 
 def file_sha256(path: Path) -> str:

@@ -1,6 +1,8 @@
 """The node graph end to end: in one executor, under bringup, recorded, and with bad input."""
 import math
 import os
+from pathlib import Path
+import signal
 import subprocess
 import sys
 import time
@@ -212,3 +214,85 @@ def test_bringup_refuses_bad_input_before_any_node(tmp_path, graph_env, case, me
     assert result.returncode != 0
     assert message in result.stderr
     assert not logs.exists(), 'a node was started'
+
+
+@pytest.mark.parametrize('options,files,message', [
+    ([], {'camera': 'view_fraction: 5.0'}, "camera: parameter 'view_fraction'"),
+    ([], {'camera': 'screen_width_m: "wide"'}, "'screen_width_m' must be a double"),
+    ([], {'controller': 'kp: "fast"'}, "'kp' must be a double"),
+    ([], {'controller': 'kpp: 1.0'}, "did you mean 'kp'?"),
+    ([], {'arm_node': 'state_rate: 10.0'}, 'names no node of activeloc_ros'),
+    (['--arm', 'serial'], {}, "use 'sim' or 'serial:PORT'"),
+    (['--camera', 'bag'], {}, 'names no bag: use bag:PATH'),
+    (['--camera', 'virtual:unknown_scene'], {}, "cannot look up the sequence 'unknown_scene'"),
+    (['--duration', 'nan'], {}, 'must be a finite number'),
+])
+def test_bringup_checks_every_input_before_starting_any_node(tmp_path, graph_env, options,
+                                                             files, message):
+    extra = []
+    for node, text in files.items():
+        path = tmp_path / f'{node}.yaml'
+        path.write_text(f'{node}:\n  ros__parameters:\n    {text}\n')
+        extra += ['--params', str(path)]
+    env = dict(graph_env, ACTIVELOC_DATA=str(tmp_path / 'no-data'))
+    logs = tmp_path / 'logs'
+    result = run_bringup(*options, *extra, '--log-dir', str(logs), env=env, timeout=60)
+    assert result.returncode != 0
+    assert message in result.stderr
+    assert 'Traceback' not in result.stderr
+    assert not logs.exists(), 'a node was started'
+
+
+def node_pids(pid: int) -> list[int]:
+    return [int(p) for p in Path(f'/proc/{pid}/task/{pid}/children').read_text().split()]
+
+
+def gone(pid: int) -> bool:
+    try:
+        return Path(f'/proc/{pid}/stat').read_text().split(') ')[1][0] in 'ZX'
+    except FileNotFoundError:
+        return True
+
+
+@pytest.mark.parametrize('how', ['SIGINT twice', 'SIGTERM', 'SIGKILL'])
+def test_bringup_stopped_by_a_signal_leaves_no_node_and_a_readable_bag(tmp_path, graph_env,
+                                                                       how):
+    """In a namespace (--ros-args), as two robots sharing a network would run it."""
+    from activeloc_ros.bag import bag_facts
+    record = tmp_path / 'run'
+    bringup = subprocess.Popen(
+        [sys.executable, '-m', 'activeloc_ros.bringup', '--loop', '--record', str(record),
+         '--log-dir', str(tmp_path / 'logs'), '--ros-args', '-r', '__ns:=/robot1'],
+        env=graph_env, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        echo = subprocess.run(
+            [sys.executable, '-m', 'activeloc_ros.echo', '/robot1/surprise_map', '--count',
+             '1', '--timeout', '150'], env=graph_env, cwd=REPO, capture_output=True,
+            text=True, timeout=200)
+        assert echo.returncode == 0, echo.stderr
+        nodes = node_pids(bringup.pid)
+        assert len(nodes) == 4
+        if how == 'SIGINT twice':
+            bringup.send_signal(signal.SIGINT)
+            time.sleep(0.5)       # the second one lands while the nodes are being stopped
+            bringup.send_signal(signal.SIGINT)
+        else:
+            bringup.send_signal(getattr(signal, how))
+        out, _ = bringup.communicate(timeout=60)
+    finally:
+        bringup.kill()
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and not all(gone(p) for p in nodes):
+        time.sleep(0.1)
+    assert all(gone(p) for p in nodes), 'a node outlived bringup'
+    if how == 'SIGKILL':
+        done = subprocess.run([sys.executable, '-m', 'activeloc_ros.bag', 'reindex',
+                               str(record)], capture_output=True, text=True, cwd=REPO,
+                              timeout=60)
+        assert done.returncode == 0, done.stderr
+    else:
+        assert bringup.returncode == 0, out
+        assert f'({how.split()[0].replace("SIGINT", "Ctrl-C")})' in out
+        assert 'Traceback' not in out
+    counts = {t.name: t.count for t in bag_facts(record).topics}     # in the namespace
+    assert counts['/robot1/camera/image_raw'] > 0 and counts['/robot1/surprise_map'] > 0

@@ -18,11 +18,12 @@ import tempfile
 import yaml
 
 from activeloc_ros.bench.pointers import ModelPointer
-from activeloc_ros.bringup import file_params, screen_aim_limits
+from activeloc_ros.bringup import screen_aim_limits
 from activeloc_ros.closed_loop import run_episode
 from activeloc_ros.data import FrameTruth
 from activeloc_ros.errors import ActivelocError
 from activeloc_ros.paths import share_path
+from activeloc_ros.ros_params import file_values
 from activeloc_ros.screen import VirtualScreen
 from activeloc_ros.sources import default_bag, open_scene
 
@@ -35,7 +36,7 @@ def node_settings(node: str) -> dict:
         from activeloc_ros.perception_node import model_params
         PARAMS = model_params()
     values = {p.name: p.default for p in PARAMS}
-    values.update(file_params(node, [share_path(f'params/{node}.yaml')]))
+    values.update(file_values(node, [share_path(f'params/{node}.yaml')]))
     return values
 
 
