@@ -24,7 +24,7 @@ setup(
     install_requires=[
         'numpy>=1.24',
         'torch==2.13.0',
-        'opencv-contrib-python-headless==5.0.0.93',
+        'opencv-contrib-python-headless>=4.11,<5.1',   # exact pins: numpy1 / numpy2 below
         'mcap==1.6.0',
         'rosbags==0.11.9',
         'PyYAML>=6.0',
@@ -37,6 +37,11 @@ setup(
             'ros-jazzy-rclpy[fastrtps]==7.1.6',
             'ros-jazzy-common-interfaces==5.3.6',
         ],
+        # One of these pins OpenCV. A sourced ROS 2 Jazzy brings numpy 1.26, which OpenCV 5
+        # wheels refuse: in a --system-site-packages venv they would pull numpy 2 and shadow
+        # it (ros-perception/vision_opencv#535). The 4.11 wheel works with both.
+        'numpy1': ['numpy>=1.24,<2', 'opencv-contrib-python-headless==4.11.0.86'],
+        'numpy2': ['numpy>=2', 'opencv-contrib-python-headless==5.0.0.93'],
         'realsense': ['pyrealsense2'],
         'test': ['pytest==9.2.0', 'hypothesis==6.170.15'],
     },
