@@ -118,11 +118,21 @@ def _pointer(name: str, settings: dict, seed: int):
 
 def run_job(job: dict) -> dict:
     """Run one method on one sequence; returns its summary and per-frame records, or the
-    reason it failed (a bad sequence is a DataError)."""
+    reason it failed (a bad sequence is a DataError). The thread counts it sets are the
+    process's again afterwards (with --jobs 1 that is the caller's process)."""
+    import torch
+    before = torch.get_num_threads(), cv2.getNumThreads()
     if job.get('threads'):
-        import torch
         torch.set_num_threads(job['threads'])
         cv2.setNumThreads(job['threads'])   # OpenCV's own pool would oversubscribe the cores
+    try:
+        return _run_job(job)
+    finally:
+        torch.set_num_threads(before[0])
+        cv2.setNumThreads(before[1])
+
+
+def _run_job(job: dict) -> dict:
     started = time.perf_counter()
     seq = data.load_sequence(job['path'])
     screen = VirtualScreen(ScreenConfig(**job['screen']))
