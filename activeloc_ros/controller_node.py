@@ -73,7 +73,8 @@ PARAMS = (
           in_range(0.0, 30.0)),
     Param('watchdog_timeout', 2.0, 'No action location for this long (s): hold still',
           positive),
-    Param('min_peak', 0.0, 'Ignore action locations whose surprise peak (z) is below this'),
+    Param('min_peak', 0.0102, 'Ignore action locations whose surprise peak (z) is below '
+          'this: no information (a uniform 14x14 map peaks at 1/196 = 0.0051)'),
     Param('settle_time', 0.3, 'Ignore action locations from frames captured while the camera '
           'moved or less than this long after it stopped, s (0: never, the paper)',
           in_range(0.0, 5.0)),

@@ -22,7 +22,12 @@ class ControllerConfig:
 
     :param watchdog_timeout: seconds without an accepted action location before holding.
     :param step_delay_ms: the servos' ms per degree (10-30), which sets the speed limit.
-    :param min_peak: locations whose surprise peak is below this are ignored.
+    :param min_peak: locations whose map's peak is below this are ignored: such a map
+        carries no information. A uniform 14x14 map (a first frame, a model reset) peaks at
+        1/196 = 0.0051, and its argmax is an arbitrary corner cell; the default is about
+        twice that, far below a real surprise map's peak (0.1-0.3). The same rule holds for
+        every method with a map; one without (peak None: a tracker, the oracle) is not
+        judged by it.
     :param pose_slack: how far (s) a capture stamp may lie outside the joint-state history
         and still be looked up in it; farther (e.g. a replayed bag's old stamps) uses the
         newest pose.
@@ -41,7 +46,7 @@ class ControllerConfig:
     mapping: ArmMapping = field(default_factory=ArmMapping)
     watchdog_timeout: float = 2.0
     step_delay_ms: float = 20.0
-    min_peak: float = -math.inf
+    min_peak: float = 0.0102
     pose_slack: float = 0.5
     settle_time: float = 0.3
     pan_limit_deg: float = 180.0
