@@ -226,6 +226,8 @@ def test_bringup_refuses_bad_input_before_any_node(tmp_path, graph_env, case, me
     (['--camera', 'bag'], {}, 'names no bag: use bag:PATH'),
     (['--camera', 'virtual:unknown_scene'], {}, "cannot look up the sequence 'unknown_scene'"),
     (['--duration', 'nan'], {}, 'must be a finite number'),
+    (['--record', '{file}/bag'], {}, 'is not a folder'),
+    (['--log-dir', '{file}/logs'], {}, '--log-dir'),
 ])
 def test_bringup_checks_every_input_before_starting_any_node(tmp_path, graph_env, options,
                                                              files, message):
@@ -235,8 +237,12 @@ def test_bringup_checks_every_input_before_starting_any_node(tmp_path, graph_env
         path.write_text(f'{node}:\n  ros__parameters:\n    {text}\n')
         extra += ['--params', str(path)]
     env = dict(graph_env, ACTIVELOC_DATA=str(tmp_path / 'no-data'))
+    (tmp_path / 'file').write_text('a regular file')
+    options = [o.format(file=tmp_path / 'file') for o in options]
     logs = tmp_path / 'logs'
-    result = run_bringup(*options, *extra, '--log-dir', str(logs), env=env, timeout=60)
+    if '--log-dir' not in options:
+        options += ['--log-dir', str(logs)]
+    result = run_bringup(*options, *extra, env=env, timeout=60)
     assert result.returncode != 0
     assert message in result.stderr
     assert 'Traceback' not in result.stderr
@@ -296,3 +302,37 @@ def test_bringup_stopped_by_a_signal_leaves_no_node_and_a_readable_bag(tmp_path,
         assert 'Traceback' not in out
     counts = {t.name: t.count for t in bag_facts(record).topics}     # in the namespace
     assert counts['/robot1/camera/image_raw'] > 0 and counts['/robot1/surprise_map'] > 0
+
+
+def write_mono16_bag(path, frames=3):
+    from activeloc_ros.bag import BagWriter
+    writer = BagWriter(path)
+    Image = writer.store.types['sensor_msgs/msg/Image']
+    Header = writer.store.types['std_msgs/msg/Header']
+    Time = writer.store.types['builtin_interfaces/msg/Time']
+    for i in range(frames):
+        writer.write('/camera/image_raw', 'sensor_msgs/msg/Image', (i + 1) * 100_000_000,
+                     Image(header=Header(stamp=Time(sec=0, nanosec=i * 100_000_000),
+                                         frame_id='cam'), height=4, width=4,
+                           encoding='mono16', is_bigendian=0, step=8,
+                           data=np.zeros(32, np.uint8)))
+    writer.close()
+
+
+@pytest.mark.parametrize('case', ['mono16 bag', 'missing serial port'])
+def test_a_node_that_cannot_go_on_ends_the_run_with_its_reason_on_the_console(
+        tmp_path, graph_env, case):
+    if case == 'mono16 bag':
+        write_mono16_bag(tmp_path / 'mono')
+        options, reason = ['--camera', f'bag:{tmp_path / "mono"}'], 'mono16'
+    else:
+        params = tmp_path / 'arm.yaml'
+        params.write_text('arm:\n  ros__parameters:\n    give_up_timeout: 1.0\n')
+        missing = tmp_path / 'ttyACM9'
+        options = ['--arm', f'serial:{missing}', '--params', str(params)]
+        reason = f'serial link to the arm on {missing} never connected'
+    result = run_bringup(*options, '--log-dir', str(tmp_path / 'logs'), env=graph_env,
+                         timeout=180)
+    assert result.returncode == 1
+    assert reason in result.stderr
+    assert 'summary: stopped after' in result.stdout
