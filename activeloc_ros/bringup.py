@@ -43,6 +43,7 @@ import yaml
 
 from activeloc_ros.errors import ActivelocError, ConfigError, SourceError
 from activeloc_ros.paths import share_path
+from activeloc_ros.screen import AIM_LIMITS
 from activeloc_ros.sources import default_bag
 
 MODES = ('realtime', 'lockstep')
@@ -109,6 +110,11 @@ def parse_args(argv):
                              'benchmark does (default: realtime)')
     parser.add_argument('--arm', default='sim',
                         help="arm back end: 'sim' or 'serial:PORT' (default: sim)")
+    parser.add_argument('--aim-limits', choices=AIM_LIMITS, default='arm',
+                        help="virtual camera: 'arm' (default) lets only the arm's joints "
+                             "limit the aim, and past the screen's edge the camera sees the "
+                             "plain wall, as the paper's rig and the screen benchmark; "
+                             "'screen' keeps the whole view on the screen")
     parser.add_argument('--params', type=Path, action='append', default=[],
                         help='extra ROS 2 params file applied to every node after the '
                              'defaults in params/ (may be repeated)')
@@ -140,7 +146,9 @@ def node_arguments(node: str, args) -> list[str]:
         if args.record is not None:         # perception and the recorder
             ros_args += ['-p', 'min_subscribers:=2']
     if node == 'controller':
-        for name, value in screen_aim_limits(args.camera, args.params).items():
+        limits = (screen_aim_limits(args.camera, args.params) if args.aim_limits == 'screen'
+                  else {})
+        for name, value in limits.items():
             ros_args += ['-p', f'{name}:={value!r}']
     if node == 'arm':
         backend, _, port = args.arm.partition(':')

@@ -25,6 +25,11 @@ from activeloc_ros.control.geometry import Intrinsics
 from activeloc_ros.errors import ConfigError
 
 
+# How far a virtual camera may turn: 'arm' = only the Braccio's joints limit it, as the
+# paper's rig, whose camera could look past the screen's edge at the wall round it;
+# 'screen' = never so far that any of its view leaves the screen (it caps even the oracle).
+AIM_LIMITS = ('arm', 'screen')
+
 @dataclass(frozen=True)
 class ScreenConfig:
     """The screen, where the camera stands, and the camera itself.
@@ -38,6 +43,9 @@ class ScreenConfig:
     :param width: camera image width, pixels.
     :param height: camera image height, pixels.
     :param hfov_deg: horizontal field of view (Intel RealSense D435 colour: 69.4 degrees).
+    :param wall_grey: grey level (0-255) of the plain wall around the screen and of rays
+        that miss the screen plane: a dim, textureless surface, as the wall round the
+        paper's projection screen; 0 renders it black.
     """
 
     screen_width_m: float = 2.214
@@ -47,13 +55,14 @@ class ScreenConfig:
     width: int = 640
     height: int = 480
     hfov_deg: float = 69.4
+    wall_grey: int = 40
 
     def __post_init__(self):
         checks = {
             'screen_width_m': above(0.0), 'screen_height_m': above(0.0),
             'view_fraction': in_range(0.01, 1.0), 'distance_m': non_negative,
             'width': in_range(16, 8192), 'height': in_range(16, 8192),
-            'hfov_deg': in_range(1.0, 170.0),
+            'hfov_deg': in_range(1.0, 170.0), 'wall_grey': in_range(0, 255),
         }
         for name, check in checks.items():
             problem = check(getattr(self, name))
@@ -169,14 +178,17 @@ class VirtualScreen:
     # -- what the camera sees ---------------------------------------------------------------
 
     def render(self, scene: np.ndarray, pan: float, tilt: float) -> np.ndarray:
-        """The camera image (H, W, 3) of the scene on the screen; off the screen is black."""
+        """The camera image (H, W, 3) of the scene on the screen; off the screen it sees the
+        plain wall (``wall_grey``). The wall is uniform so it holds nothing to track or to
+        be surprised by: every method sees the same screen edge and nothing else there."""
         h, w = scene.shape[:2]
         H = self.homography(pan, tilt, (w, h))
+        wall = self.config.wall_grey
         image = cv2.warpPerspective(scene, H, self.size, flags=cv2.INTER_LINEAR,
-                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+                                    borderMode=cv2.BORDER_CONSTANT, borderValue=(wall,) * 3)
         behind = self._behind_mask(pan, tilt)
         if behind is not None:
-            image[behind] = 0
+            image[behind] = wall
         return image
 
     def _behind_mask(self, pan: float, tilt: float) -> np.ndarray | None:

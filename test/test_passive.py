@@ -82,7 +82,8 @@ def test_cli_markdown_json_and_atomic_out(tmp_path, capsys):
     assert '| framediff | 14 | 100.0 |' in text.out
     assert 'c_broken' in text.err and 'gt_xywh.txt' in text.err
     saved = json.loads((out / 'passive.json').read_text())
-    assert [m['method'] for m in saved['methods']] == ['random', 'centre', 'framediff']
+    assert [m['method'] for m in saved['methods']] == ['random', 'centre', 'framediff',
+                                                       'framediff-ego']
     assert saved['skipped'][0][0] == 'c_broken'
     assert {f['sequence'] for f in saved['frames']} == {'a_square', 'b_square'}
     assert (out / 'passive.md').read_text().startswith('| method |')
@@ -91,7 +92,7 @@ def test_cli_markdown_json_and_atomic_out(tmp_path, capsys):
     code = passive.main(['--data', str(tmp_path / 'seqs'), '--no-model', '--quiet',
                          '--json', '--sequences', 'b_square', '--max-frames', '4'])
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
-    assert code == 0 and len(rows) == 3
+    assert code == 0 and len(rows) == 4
     diff = rows[2]
     assert diff['method'] == 'framediff' and diff['frames'] == 3
     assert diff['sequences']['b_square']['hit_rate'] == 1.0

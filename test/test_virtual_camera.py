@@ -364,9 +364,10 @@ def test_bringup_refuses_bad_virtual_cameras_before_any_node(tmp_path, args, mes
     assert not logs.exists(), 'a node was started'
 
 
-def test_bringup_aims_a_virtual_camera_no_farther_than_the_screen(tmp_path):
-    """As in the screen benchmark: the controller gets the screen's aim limits, from the
-    camera's params files, unless the user's own files set them."""
+def test_bringup_aim_limits_are_the_arms_or_on_request_the_screens(tmp_path):
+    """As in the screen benchmark: by default only the arm limits the aim; with
+    --aim-limits screen the controller gets the screen's aim limits, from the camera's
+    params files, unless the user's own files set them."""
     from activeloc_ros.bringup import node_arguments, parse_args
     wider = tmp_path / 'wider.yaml'
     wider.write_text('/**:\n  ros__parameters:\n    view_fraction: 0.5\n')
@@ -378,12 +379,14 @@ def test_bringup_aims_a_virtual_camera_no_farther_than_the_screen(tmp_path):
         return {a.split(':=')[0]: float(a.split(':=')[1]) for a in ros_args
                 if a.startswith(('pan_limit_deg:=', 'tilt_limit_deg:='))}
 
+    assert limits() == {}                   # the faithful rig: only the arm's joints
     pan, tilt = VirtualScreen().aim_limits_deg()
-    assert limits() == pytest.approx({'pan_limit_deg': pan, 'tilt_limit_deg': tilt})
-    narrower = limits('--params', str(wider))
+    screen = ('--aim-limits', 'screen')
+    assert limits(*screen) == pytest.approx({'pan_limit_deg': pan, 'tilt_limit_deg': tilt})
+    narrower = limits(*screen, '--params', str(wider))
     assert narrower['pan_limit_deg'] < pan and narrower['tilt_limit_deg'] < tilt
-    assert set(limits('--params', str(mine))) == {'tilt_limit_deg'}
-    assert limits('--camera', f'bag:{default_bag()}') == {}
+    assert set(limits(*screen, '--params', str(mine))) == {'tilt_limit_deg'}
+    assert limits(*screen, '--camera', f'bag:{default_bag()}') == {}
 
 
 def test_recorded_poses_read_back_per_frame(tmp_path):

@@ -18,7 +18,6 @@ import tempfile
 import yaml
 
 from activeloc_ros.bench.pointers import ModelPointer
-from activeloc_ros.bringup import screen_aim_limits
 from activeloc_ros.closed_loop import run_episode
 from activeloc_ros.data import FrameTruth
 from activeloc_ros.errors import ActivelocError
@@ -54,7 +53,7 @@ def bench_poses(scene: str, frames: int) -> list[tuple[float, float, float]]:
                 return
             yield i, frame.rgb, FrameTruth(i, None, (), False)
 
-    control = {**node_settings('controller'), **screen_aim_limits(f'virtual:{scene}', [])}
+    control = node_settings('controller')     # bringup's default: the arm's aim limits only
     perception = node_settings('perception')
     fields = PerceptionConfig.descriptions()
     pointer = ModelPointer('ours', {k: v for k, v in perception.items() if k in fields})

@@ -10,17 +10,27 @@ Per frame with ground truth (inside `eval_frames`, from frame `--warmup` on):
 Baselines: 'random' (a seeded uniform-noise map: the chance level of both scores),
 'centre' (a centred Gaussian, sigma = 0.25 of the width/height; AUC only sees its ranking,
 which is the distance from the image centre in width/height-normalised units) and
-'framediff' (mean absolute difference of consecutive 5x5-blurred grey frames per cell).
+'framediff' (mean absolute difference of consecutive 5x5-blurred grey frames per cell) and
+'framediff-ego' (the same with the camera's own motion taken out, `perception.motion`).
+
+`--pan DEG` moves the camera: each frame is shown on the virtual screen (`screen`) and seen
+by a camera that pans (and tilts half as far) back and forth within +-DEG, in moves of
+`--pan-step` degrees a frame separated by still spells, as the arm moves it; the actors'
+boxes are projected into its image. Hits are also split by whether the camera moved since
+the previous frame, and the share of peaks on the map's outer ring is reported: with a
+still scene behind the actors, a peak that leaves the actors when the camera moves is the
+camera's own motion showing through.
 
     python -m activeloc_ros.bench passive --data DIR [--encoder E ...] [--ablations A ...]
 """
 import argparse
 from dataclasses import dataclass, field
 import json
+import math
 from pathlib import Path
 import sys
 import time
-from typing import Callable, Protocol
+from typing import Callable, Iterator, Protocol
 import zlib
 
 import cv2
@@ -122,6 +132,81 @@ def _ablation_overrides(ablation: str) -> dict:
     return dict(MODEL_ROWS[ablation])
 
 
+class EgoFrameDiff:
+    """Frame differencing with the camera's motion removed (`motion.FrameDifference`)."""
+
+    name = 'framediff-ego'
+
+    def __init__(self) -> None:
+        from activeloc_ros.perception.motion import FrameDifference
+        self.diff = FrameDifference(grid=GRID)
+
+    def reset(self, sequence: data.Sequence) -> None:
+        self.diff.reset()
+
+    def step(self, image: np.ndarray) -> np.ndarray:
+        heat = self.diff.step(image)
+        total = 0.0 if heat is None else float(heat.sum())
+        if total <= 0:
+            return np.full(GRID, 1.0 / (GRID[0] * GRID[1]), np.float32)
+        return heat / total
+
+    def peak(self, heat: np.ndarray, image_wh: tuple[int, int]) -> tuple[float, float]:
+        return metrics.peak_point(heat, image_wh)
+
+
+class PanningCamera:
+    """A camera on the virtual screen that moves by itself: pan in moves of `step_deg` a
+    frame for `move` frames, then still for `hold` frames, turning back at +-`amplitude_deg`;
+    tilt the same at half the size. Deterministic."""
+
+    def __init__(self, amplitude_deg: float, *, step_deg: float = 2.0, move: int = 4,
+                 hold: int = 4) -> None:
+        from activeloc_ros.screen import VirtualScreen
+        if not (amplitude_deg > 0 and step_deg > 0 and move >= 1 and hold >= 0):
+            raise ActivelocError('--pan and --pan-step must be > 0')
+        self.screen = VirtualScreen()
+        self.amplitude, self.step_deg, self.move, self.hold = amplitude_deg, step_deg, move, hold
+
+    def poses(self, n: int) -> list[tuple[float, float]]:
+        """(pan, tilt) in degrees of frames 0..n-1."""
+        pan, direction, out = 0.0, 1.0, []
+        period = self.move + self.hold
+        for i in range(n):
+            if i > 0 and (i - 1) % period < self.move:
+                if abs(pan + direction * self.step_deg) > self.amplitude:
+                    direction = -direction
+                pan += direction * self.step_deg
+            out.append((pan, pan / 2.0))
+        return out
+
+    def frames(self, sequence: data.Sequence, *, max_frames: int | None
+               ) -> Iterator[tuple[data.Sample, bool]]:
+        """The sequence as this camera sees it: (sample in camera pixels, moved since the
+        previous frame)."""
+        limit = len(sequence) if max_frames is None else min(len(sequence), max_frames)
+        poses = self.poses(limit)
+        wh = (sequence.width, sequence.height)
+        w, h = self.screen.size
+        for sample in sequence.frames(max_frames=max_frames):
+            pan_deg, tilt_deg = poses[sample.index]
+            pan, tilt = math.radians(pan_deg), math.radians(tilt_deg)
+            boxes = []
+            for b in sample.truth.actors:
+                corners = self.screen.project([(b.x, b.y), (b.x + b.w, b.y), (b.x, b.y + b.h),
+                                               (b.x + b.w, b.y + b.h)], pan, tilt, wh)
+                cx, cy = np.mean(corners, axis=0)
+                if np.all(np.isfinite(corners)) and 0 <= cx < w and 0 <= cy < h:
+                    x0, y0 = corners.min(axis=0)
+                    x1, y1 = corners.max(axis=0)
+                    boxes.append(data.Box(x0, y0, x1 - x0, y1 - y0))
+            truth = data.FrameTruth(sample.index, boxes[0] if boxes else None, tuple(boxes),
+                                    sample.truth.scored)
+            moved = sample.index > 0 and poses[sample.index] != poses[sample.index - 1]
+            yield data.Sample(sample.index, self.screen.render(sample.image, pan, tilt),
+                              truth), moved
+
+
 class ModelMethod:
     """The perception model (`SurpriseModel`), fresh for every sequence.
 
@@ -163,12 +248,19 @@ class Tally:
 
     hits: list[bool] = field(default_factory=list)
     aucs: list[float] = field(default_factory=list)
+    moving: list[bool] = field(default_factory=list)   # the camera moved before the frame
+    border: list[bool] = field(default_factory=list)   # the peak is on the map's outer ring
     seconds: float = 0.0
     steps: int = 0
 
     def summary(self) -> dict:
+        hits = np.array(self.hits, bool)
+        moving = np.array(self.moving, bool)
         return {'frames': len(self.hits),
                 'hit_rate': float(np.mean(self.hits)) if self.hits else float('nan'),
+                'hit_rate_moving': float(hits[moving].mean()) if moving.any() else None,
+                'hit_rate_still': float(hits[~moving].mean()) if (~moving).any() else None,
+                'border_peaks': float(np.mean(self.border)) if self.border else float('nan'),
                 'auc_judd': metrics.summarise(self.aucs).mean,
                 'ms_per_frame': 1000.0 * self.seconds / self.steps if self.steps else None}
 
@@ -176,7 +268,7 @@ class Tally:
 def run_sequence(sequence: data.Sequence, methods: list[Method], *, max_frames: int | None,
                  warmup: int, progress: Progress | None = None,
                  frames_out: list | None = None, auc_jitter: bool = False,
-                 ) -> tuple[dict[str, Tally], float]:
+                 camera: PanningCamera | None = None) -> tuple[dict[str, Tally], float]:
     """Stream one sequence through every method; returns the tallies and the mean chance
     hit rate of its scored frames.
 
@@ -189,8 +281,13 @@ def run_sequence(sequence: data.Sequence, methods: list[Method], *, max_frames: 
         m.reset(sequence)
     chance = []
     image_wh = (sequence.width, sequence.height)
+    if camera is None:
+        stream = ((s, False) for s in sequence.frames(max_frames=max_frames))
+    else:
+        stream = camera.frames(sequence, max_frames=max_frames)
+        image_wh = camera.screen.size
     cell_wh = metrics.cell_size(GRID, image_wh)
-    for sample in sequence.frames(max_frames=max_frames):
+    for sample, moved in stream:
         truth = sample.truth
         scored = truth.scored and bool(truth.actors) and sample.index >= warmup
         if scored:
@@ -209,6 +306,9 @@ def run_sequence(sequence: data.Sequence, methods: list[Method], *, max_frames: 
             auc = metrics.auc_judd(heat, fixations, jitter=auc_jitter, rng=rng)
             tally.hits.append(hit)
             tally.aucs.append(auc)
+            tally.moving.append(moved)
+            row, col = metrics.peak_cell(heat)
+            tally.border.append(row in (0, GRID[0] - 1) or col in (0, GRID[1] - 1))
             if frames_out is not None:
                 frames_out.append({'sequence': sequence.name, 'frame': sample.index,
                                    'method': m.name, 'hit': hit, 'auc_judd': auc,
@@ -220,7 +320,8 @@ def run_sequence(sequence: data.Sequence, methods: list[Method], *, max_frames: 
 
 def evaluate(sequences: list[data.Sequence], methods: list[Method], *,
              max_frames: int | None = None, warmup: int = 1, quiet: bool = False,
-             keep_frames: bool = False, auc_jitter: bool = False) -> dict:
+             keep_frames: bool = False, auc_jitter: bool = False,
+             camera: PanningCamera | None = None) -> dict:
     """Run every method over every sequence; a sequence whose frames turn out bad is
     dropped for all methods and listed under 'skipped'."""
     total = sum(len(s) if max_frames is None else min(len(s), max_frames) for s in sequences)
@@ -235,7 +336,7 @@ def evaluate(sequences: list[data.Sequence], methods: list[Method], *,
             tallies, chance = run_sequence(seq, methods, max_frames=max_frames,
                                            warmup=warmup, progress=progress,
                                            auc_jitter=auc_jitter,
-                                           frames_out=frames_out)
+                                           frames_out=frames_out, camera=camera)
         except DataError as err:
             skipped.append((seq.name, str(err)))
             if frames_out is not None:
@@ -251,12 +352,16 @@ def evaluate(sequences: list[data.Sequence], methods: list[Method], *,
         seqs = {}
         hits: list[bool] = []
         aucs: list[float] = []
+        moving: list[bool] = []
+        border: list[bool] = []
         seconds, steps = 0.0, 0
         for name, tallies in per_seq.items():
             t = tallies[m.name]
             seqs[name] = {**info[name], **t.summary()}
             hits += t.hits
             aucs += t.aucs
+            moving += t.moving
+            border += t.border
             seconds += t.seconds
             steps += t.steps
         rates = [s['hit_rate'] for s in seqs.values() if s['frames']]
@@ -272,6 +377,8 @@ def evaluate(sequences: list[data.Sequence], methods: list[Method], *,
                'hit_rate_seq_mean': float(np.mean(rates)) if rates else float('nan'),
                'auc_judd': metrics.summarise(aucs).mean,
                'ms_per_frame': 1000.0 * seconds / steps if steps else None,
+               **{k: v for k, v in Tally(hits, aucs, moving, border).summary().items()
+                  if k in ('hit_rate_moving', 'hit_rate_still', 'border_peaks')},
                'by_camera': by_camera, 'sequences': seqs}
         if isinstance(m, ModelMethod):
             row.update(encoder=m.encoder, ablation=m.ablation, config=_plain(m.config))
@@ -296,13 +403,23 @@ def markdown(result: dict) -> str:
     rows = result['methods']
     kinds = [k for k in data.KIND_ORDER if rows and k in rows[0]['by_camera']]
     head = ['method', 'frames', 'hit %', 'hit % (seq mean)', 'AUC-Judd %']
-    head += [f'hit % {k}' for k in kinds] + ['ms/frame']
+    head += [f'hit % {k}' for k in kinds]
+    panned = any(r.get('hit_rate_moving') is not None for r in rows)
+    if panned:
+        head += ['hit % camera moved', 'hit % camera still']
+    head += ['peaks on border %', 'ms/frame']
     lines = ['| ' + ' | '.join(head) + ' |', '|---|' + '---:|' * (len(head) - 1)]
     for r in rows:
         ms = '-' if r['ms_per_frame'] is None else f'{r["ms_per_frame"]:.1f}'
         cells = [r['method'], str(r['frames']), _pct(r['hit_rate']),
                  _pct(r['hit_rate_seq_mean']), _pct(r['auc_judd'])]
-        cells += [_pct(r['by_camera'][k]['hit_rate']) for k in kinds] + [ms]
+        cells += [_pct(r['by_camera'][k]['hit_rate']) for k in kinds]
+        if panned:
+            cells += [_pct(r['hit_rate_moving'] if r['hit_rate_moving'] is not None
+                           else float('nan')),
+                      _pct(r['hit_rate_still'] if r['hit_rate_still'] is not None
+                           else float('nan'))]
+        cells += [_pct(r['border_peaks']), ms]
         lines.append('| ' + ' | '.join(cells) + ' |')
     names = list(rows[0]['sequences']) if rows else []
     if names:
@@ -338,6 +455,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--set', nargs='+', metavar='KEY=JSON', default=[],
                    help='extra PerceptionConfig fields for every model row, e.g. lr=1e-4')
     p.add_argument('--no-model', action='store_true', help='baselines only')
+    p.add_argument('--pan', type=float, default=0.0, metavar='DEG',
+                   help='move the camera: the frames on the virtual screen, seen by a camera '
+                        'panning within +-DEG (tilting half as far); 0 = the still camera '
+                        'of the source (default)')
+    p.add_argument('--pan-step', type=float, default=2.0, metavar='DEG',
+                   help='with --pan, degrees the camera turns a frame while it moves '
+                        '(default 2: 20 deg/s at 10 frames/s)')
     p.add_argument('--warmup', type=int, default=1, metavar='N',
                    help='frames not scored at the start of each sequence (default 1)')
     p.add_argument('--seed', type=int, default=0)
@@ -352,7 +476,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def build_methods(args: argparse.Namespace) -> list[Method]:
-    methods: list[Method] = [RandomMap(args.seed), CentreBias(), FrameDiff()]
+    methods: list[Method] = [RandomMap(args.seed), CentreBias(), FrameDiff(), EgoFrameDiff()]
     if args.no_model:
         return methods
     ablations = names(args.ablations)
@@ -373,6 +497,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         root, sequences, skipped = load_selected(args)
         methods = build_methods(args)
+        camera = PanningCamera(args.pan, step_deg=args.pan_step) if args.pan else None
     except ActivelocError as err:
         print(f'error: {err}', file=sys.stderr)
         return 2
@@ -384,15 +509,15 @@ def main(argv: list[str] | None = None) -> int:
     try:
         result = evaluate(sequences, methods, max_frames=args.max_frames,
                           warmup=args.warmup, quiet=args.quiet, keep_frames=bool(args.out),
-                          auc_jitter=args.auc_jitter)
+                          auc_jitter=args.auc_jitter, camera=camera)
     except ActivelocError as err:
         print(f'error: {err}', file=sys.stderr)
         return 2
     result['skipped'] = skipped + result['skipped']
     result['settings'] = {'data': str(root), 'max_frames': args.max_frames,
                           'warmup': args.warmup, 'seed': args.seed, 'grid': list(GRID),
-                          'auc_jitter': args.auc_jitter,
-                          'set': args.set}
+                          'auc_jitter': args.auc_jitter, 'set': args.set,
+                          'pan_deg': args.pan, 'pan_step_deg': args.pan_step}
     table = markdown(result)
     if args.json:
         for row in result['methods']:

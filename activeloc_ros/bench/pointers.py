@@ -3,8 +3,10 @@
 Each is a ``closed_loop.Pointer``; the trackers are in ``bench.trackers``. All of them
 drive the same controller and arm.
 """
+import cv2
 import numpy as np
 
+from activeloc_ros import metrics
 from activeloc_ros.closed_loop import Pointing, View
 from activeloc_ros.errors import ConfigError
 
@@ -118,3 +120,73 @@ class OraclePointer:
             target = finite[np.argmin(np.linalg.norm(finite - centre, axis=1))]
         return Pointing((float(np.clip(target[0], 0, w - 1)),
                          float(np.clip(target[1], 0, h - 1))))
+
+
+def _map_pointing(heat: np.ndarray | None, image_wh: tuple[int, int]) -> Pointing:
+    """A pointer's answer from a non-negative map: its peak cell, the map normalised to sum
+    1, and its peak value, which the controller's information rule (`min_peak`) judges as it
+    judges the model's. No map, or nothing in it: no location."""
+    total = 0.0 if heat is None else float(heat.sum())
+    if not total > 0:
+        return Pointing(None)
+    heat = (heat / total).astype(np.float32)
+    return Pointing(metrics.peak_point(heat, image_wh), heat, float(heat.max()))
+
+
+class FrameDiffPointer:
+    """Frame differencing with the camera's own motion taken out as the model's is
+    (`perception.motion.FrameDifference`): steers to the cell that changed most."""
+
+    name = 'framediff'
+
+    def __init__(self):
+        from activeloc_ros.perception.motion import FrameDifference
+        self.diff = FrameDifference()
+
+    def reset(self) -> None:
+        self.diff.reset()
+
+    def locate(self, view: View) -> Pointing:
+        h, w = view.rgb.shape[:2]
+        return _map_pointing(self.diff.step(view.rgb), (w, h))
+
+
+class Mog2Pointer:
+    """OpenCV's BackgroundSubtractorMOG2: steers to the centroid of the foreground. The
+    background model starts again whenever the camera moved (the same ego-motion estimate
+    as framediff's), since a moved view is all foreground to it.
+
+    :param width: working width of the image (the height keeps the aspect).
+    :param min_share: less foreground than this share of the image is no foreground.
+    """
+
+    name = 'mog2'
+
+    def __init__(self, *, width: int = 320, min_share: float = 0.001):
+        from activeloc_ros.perception.motion import FrameDifference
+        self.camera = FrameDifference()
+        self.width = width
+        self.min_share = min_share
+        self.reset()
+
+    def reset(self) -> None:
+        self.camera.reset()
+        self.subtractor = None
+
+    def locate(self, view: View) -> Pointing:
+        h, w = view.rgb.shape[:2]
+        self.camera.step(view.rgb)
+        if self.subtractor is None or self.camera.moved:
+            self.subtractor = cv2.createBackgroundSubtractorMOG2(detectShadows=False)
+        small = cv2.resize(view.rgb, (self.width, max(1, round(h * self.width / w))),
+                           interpolation=cv2.INTER_AREA)
+        mask = self.subtractor.apply(small)
+        mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+        ys, xs = np.nonzero(mask)
+        if len(xs) < self.min_share * mask.size:
+            return Pointing(None)
+        scale = w / self.width
+        location = ((xs.mean() + 0.5) * scale - 0.5, (ys.mean() + 0.5) * h / mask.shape[0] - 0.5)
+        heat = cv2.resize((mask > 0).astype(np.float32), (14, 14), interpolation=cv2.INTER_AREA)
+        heat = heat / heat.sum()
+        return Pointing(location, heat, float(heat.max()))

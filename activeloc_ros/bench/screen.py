@@ -30,19 +30,21 @@ from activeloc_ros.bench import add_sequence_options, key_values, load_selected,
 from activeloc_ros.bench.time_plots import time_plots
 from activeloc_ros.bench.video import H264Writer
 from activeloc_ros.bench.pointers import (
-    ABLATIONS, CentrePointer, ModelPointer, OraclePointer, RandomPointer, TrackerMethod)
+    ABLATIONS, CentrePointer, FrameDiffPointer, ModelPointer, Mog2Pointer, OraclePointer,
+    RandomPointer, TrackerMethod)
 from activeloc_ros.closed_loop import FrameRecord, MODES, run_episode
 from activeloc_ros.control import ControllerConfig, PD_VARIANTS, PDConfig
 from activeloc_ros.errors import ActivelocError, ConfigError, DataError
 from activeloc_ros.paths import write_atomic
 from activeloc_ros.progress import Progress
-from activeloc_ros.screen import ScreenConfig, VirtualScreen
+from activeloc_ros.screen import AIM_LIMITS, ScreenConfig, VirtualScreen
 
 TRACKER_METHODS = ('tld', 'mil', 'mosse', 'kcf', 'csrt')
 MODEL_METHODS = ('ours', *(f'ours-{a}' for a in ABLATIONS if a != 'full'),
                  *(f'ours-pd-{v}' for v, gains in PD_VARIANTS.items()
                    if gains != (PDConfig.kp, PDConfig.kd)))
-METHODS = (*MODEL_METHODS, 'random', 'centre', 'oracle', *TRACKER_METHODS)
+MOTION_METHODS = ('framediff', 'mog2')     # unsupervised anchors on the picture's change
+METHODS = (*MODEL_METHODS, 'random', 'centre', 'oracle', *MOTION_METHODS, *TRACKER_METHODS)
 METRICS = (('aae_deg', 'AAE (deg)', 'lower is better'),
            ('auc_judd', 'AUC-Judd (%)', 'higher is better'),
            ('in_view', 'in view (%)', 'higher is better'))
@@ -70,6 +72,10 @@ def make_pointer(name: str, settings: dict, seed: int):
         return CentrePointer()
     if name == 'oracle':
         return OraclePointer()
+    if name == 'framediff':
+        return FrameDiffPointer()
+    if name == 'mog2':
+        return Mog2Pointer()
     overrides, _ = method_parts(name)
     return ModelPointer(name, {'seed': seed, **settings, **overrides})
 
@@ -82,7 +88,8 @@ CONTROL_OPTIONS = ('settle_time', 'watchdog_timeout', 'step_delay_ms', 'min_peak
 def controller_for(name: str, control: dict, screen: VirtualScreen | None = None
                    ) -> ControllerConfig:
     """The controller of a method: its PD variant plus the --control settings; with a
-    `screen`, aimed no farther than its view stays on the screen (unless set)."""
+    `screen`, aimed no farther than its view stays on the screen (unless set; the
+    `--aim-limits screen` rig)."""
     unknown = sorted(set(control) - set(PD_OPTIONS) - set(CONTROL_OPTIONS))
     if unknown:
         raise ConfigError(f'unknown --control settings {unknown}; known: '
@@ -143,7 +150,8 @@ def _run_job(job: dict) -> dict:
         if job['video']:
             video = OverlayVideo(Path(job['video']), screen, seq.fps, job['method'])
         try:
-            controller = controller_for(job['method'], job['control'], screen)
+            limits = screen if job['aim_limits'] == 'screen' else None
+            controller = controller_for(job['method'], job['control'], limits)
             episode = run_episode(frames, pointer, fps=seq.fps, screen=screen,
                                   controller=controller,
                                   mode=job['mode'], camera_fps=job['camera_fps'] or None,
@@ -263,7 +271,7 @@ def _ignore_sigint() -> None:
 
 def evaluate(sequences: list[data.Sequence], methods: list[str], *, mode: str,
              camera_fps: float, screen: dict, settings: dict, control: dict, seed: int,
-             jobs: int,
+             jobs: int, aim_limits: str = 'arm',
              max_frames: int | None, video_dir: Path | None, quiet: bool) -> dict:
     """Run every method on every sequence (in `jobs` worker processes)."""
     threads = max(1, (os.cpu_count() or 1) // jobs)
@@ -273,7 +281,7 @@ def evaluate(sequences: list[data.Sequence], methods: list[str], *, mode: str,
             video = str(video_dir / seq.name / f'{method}.mp4') if video_dir else ''
             work.append({'path': str(seq.path), 'method': method, 'settings': settings,
                          'seed': seed, 'mode': mode, 'camera_fps': camera_fps,
-                         'screen': screen, 'control': control,
+                         'screen': screen, 'control': control, 'aim_limits': aim_limits,
                          'max_frames': max_frames, 'video': video, 'threads': threads})
     # the slowest first (resnet50, then the other model methods), so the fast ones fill
     # the gaps at the end
@@ -426,6 +434,10 @@ def parser() -> argparse.ArgumentParser:
                    help='controller settings for every method: ' + ', '.join(
                        PD_OPTIONS + CONTROL_OPTIONS) + " (dead_band in radians; "
                    "derivative=error is the paper's literal PD)")
+    p.add_argument('--aim-limits', choices=AIM_LIMITS, default='arm',
+                   help="how far the camera may turn: 'arm' (default) only the arm's joints "
+                        "limit it, and past the screen's edge it sees the plain wall, as the "
+                        "paper's rig; 'screen' keeps its whole view on the screen")
     p.add_argument('--jobs', type=int, default=min(2, os.cpu_count() or 1), metavar='N',
                    help='worker processes (default: 2 or the number of cores)')
     p.add_argument('--seed', type=int, default=0)
@@ -486,6 +498,7 @@ def run(args: argparse.Namespace) -> int:
     result = evaluate(sequences, methods, mode=args.mode, camera_fps=args.camera_fps,
                       screen=screen, settings=settings,
                       control=control, seed=args.seed, jobs=args.jobs,
+                      aim_limits=args.aim_limits,
                       max_frames=args.max_frames, quiet=args.quiet,
                       video_dir=None if args.no_video else out / 'videos')
     result['skipped'] = skipped + result['skipped']
@@ -495,7 +508,8 @@ def run(args: argparse.Namespace) -> int:
         'data': str(root), 'mode': args.mode, 'camera_fps': args.camera_fps,
         'screen': geometry.describe(),
         'screen_config': screen, 'set': settings, 'seed': args.seed,
-        'control': control, 'max_frames': args.max_frames, 'jobs': args.jobs,
+        'control': control, 'aim_limits': args.aim_limits,
+        'max_frames': args.max_frames, 'jobs': args.jobs,
         'seconds': round(time.monotonic() - started, 1)}
     table = markdown(result)
     write_atomic(out / 'screen.json', json.dumps(result) + '\n')

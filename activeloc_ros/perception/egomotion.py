@@ -15,6 +15,7 @@ import torch.nn.functional as F
 
 MIN_INLIERS = 12          # fewer RANSAC inliers: no reliable estimate
 RANSAC_PX = 2.0           # inlier threshold, pixels of the model's input image
+MODELS = ('similarity', 'homography')
 
 
 class EgoMotion:
@@ -22,9 +23,16 @@ class EgoMotion:
 
     :param features: ORB keypoints per image.
     :param min_shift_px: a warp that moves no image corner more than this is no motion.
+    :param model: 'similarity' (shift, rotation, scale) or 'homography', the exact image
+        motion of a camera that turns about its optical centre, as a pan-tilt camera does:
+        a similarity leaves the perspective part at the corners of a turned view unexplained.
     """
 
-    def __init__(self, *, features: int = 500, min_shift_px: float = 0.5):
+    def __init__(self, *, features: int = 500, min_shift_px: float = 0.5,
+                 model: str = 'similarity'):
+        if model not in MODELS:
+            raise ValueError(f'ego-motion model must be one of {MODELS}, got {model!r}')
+        self.model = model
         self.orb = cv2.ORB_create(nfeatures=features, edgeThreshold=15, patchSize=15)
         self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
         self.min_shift_px = min_shift_px
@@ -43,11 +51,14 @@ class EgoMotion:
             return None
         src = np.float32([kp0[m.queryIdx].pt for m in matches])
         dst = np.float32([kp1[m.trainIdx].pt for m in matches])
-        affine, inliers = cv2.estimateAffinePartial2D(
-            src, dst, method=cv2.RANSAC, ransacReprojThreshold=RANSAC_PX)
-        if affine is None or int(inliers.sum()) < MIN_INLIERS:
+        if self.model == 'homography':
+            h, inliers = cv2.findHomography(src, dst, cv2.RANSAC, RANSAC_PX)
+        else:
+            affine, inliers = cv2.estimateAffinePartial2D(
+                src, dst, method=cv2.RANSAC, ransacReprojThreshold=RANSAC_PX)
+            h = None if affine is None else np.vstack([affine, [0.0, 0.0, 1.0]])
+        if h is None or inliers is None or int(inliers.sum()) < MIN_INLIERS:
             return None
-        h = np.vstack([affine, [0.0, 0.0, 1.0]])
         corners = np.float32([[0, 0], [size, 0], [0, size], [size, size]])[:, None]
         moved = cv2.perspectiveTransform(corners, h) - corners
         if np.abs(moved).max() <= self.min_shift_px:
