@@ -113,7 +113,7 @@ def test_head_none_needs_matching_width():
 # -- maps and locations ----------------------------------------------------------------------
 @pytest.mark.parametrize('real', [True, False])
 def test_first_map_is_uniform_then_a_distribution_with_its_argmax(real):
-    model = make(real=real)
+    model = make(real=real, location='peak')
     assert model.grid == (14 if real else 8)
     frames = clip(4, h=37, w=53)
     first = model.step(frames[0])
@@ -133,6 +133,27 @@ def test_first_map_is_uniform_then_a_distribution_with_its_argmax(real):
         assert set(res.losses) == {'global', 'attn', 'total'}
         assert set(res.timings) == {'preprocess', 'encode', 'predict', 'update', 'total'}
     assert res.frame_index == 3
+
+
+def test_the_mass_location_is_the_centroid_of_the_cells_near_the_peak():
+    grid = torch.full((4, 6), 0.01)
+    grid[1, 1], grid[1, 2], grid[3, 5] = 0.4, 0.2, 0.05      # a group, and a weak stray cell
+    assert M.action_location(grid, 'peak', 0.25) == (1.5, 1.5)
+    x, y = M.action_location(grid, 'mass', 0.25)              # the stray cell is under 0.1
+    assert (x, y) == pytest.approx(((0.4 * 1.5 + 0.2 * 2.5) / 0.6, 1.5))
+    assert M.action_location(grid, 'mass', 1.0) == (1.5, 1.5)
+    everything = M.action_location(torch.ones(4, 6), 'mass', 0.0)
+    assert everything == pytest.approx((3.0, 2.0))            # the map's middle
+
+
+def test_the_model_reports_the_mass_location_in_frame_pixels():
+    model = make(location='mass', location_share=0.0)
+    frames = clip(3, h=37, w=53)
+    for frame in frames:
+        res = model.step(frame)
+    m = torch.from_numpy(res.surprise_map)
+    x, y = M.action_location(m, 'mass', 0.0)
+    assert res.location_px == pytest.approx((x * 53 / model.grid, y * 37 / model.grid))
 
 
 @pytest.mark.parametrize('frame', [
