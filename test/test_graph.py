@@ -65,12 +65,18 @@ def test_graph_in_one_executor(context):
         grid = np.asarray(msg.data).reshape(14, 14)
         assert np.all(grid >= 0) and grid.sum() == pytest.approx(1.0, abs=1e-3)
     # maps come in frame order: each is followed by its location, stamps increase, and the
-    # location lies in the cell where that map peaks
+    # location is the one the packaged settings (location: mass) take from that map
+    import torch
+    from activeloc_ros.perception.model import action_location, PerceptionConfig
+    cfg = PerceptionConfig()
     stamps = [loc.header.stamp.sec + loc.header.stamp.nanosec * 1e-9 for loc in probe.locations]
     assert all(b > a for a, b in zip(stamps, stamps[1:]))
     for msg, loc in zip(probe.maps, probe.locations):
-        row, col = np.unravel_index(np.argmax(msg.data), (14, 14))
-        assert (int(loc.point.x // (640 / 14)), int(loc.point.y // (480 / 14))) == (col, row)
+        grid = torch.tensor(msg.data, dtype=torch.float32).reshape(14, 14)
+        x, y = action_location(grid, cfg.location, cfg.location_share)
+        assert (loc.point.x, loc.point.y) == pytest.approx((x * 640 / 14, y * 480 / 14),
+                                                           abs=0.5)
+        assert loc.point.z == pytest.approx(float(grid.max()), rel=1e-5)
         assert 0 <= loc.point.x < 640 and 0 <= loc.point.y < 480
     assert probe.commands, 'the controller sent no joint command'
     for cmd in probe.commands:
