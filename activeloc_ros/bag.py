@@ -269,6 +269,19 @@ class McapScan:
     reindex_last: bool = False      # the newest chunk's message indexes are written again
 
 
+def _take_definition(opcode: int, body: bytes, scan: 'McapScan') -> bool:
+    """Keep a Schema or Channel record (inside or outside chunks); False for others."""
+    if opcode == Opcode.SCHEMA:
+        schema = Schema.read(ReadDataStream(BytesIO(body)))
+        scan.schemas[schema.id] = schema
+    elif opcode == Opcode.CHANNEL:
+        channel = Channel.read(ReadDataStream(BytesIO(body)))
+        scan.channels[channel.id] = channel
+    else:
+        return False
+    return True
+
+
 def _scan_chunk(record: Chunk, start: int, length: int, scan: McapScan) -> _ChunkScan:
     stream, size = get_chunk_data_stream(record)
     data = stream.read(size)
@@ -279,12 +292,8 @@ def _scan_chunk(record: Chunk, start: int, length: int, scan: McapScan) -> _Chun
         body = data[pos + _RECORD_HEAD.size:pos + _RECORD_HEAD.size + body_len]
         if len(body) != body_len:
             raise McapError('record runs past the end of its chunk')
-        if opcode == Opcode.SCHEMA:
-            schema = Schema.read(ReadDataStream(BytesIO(body)))
-            scan.schemas[schema.id] = schema
-        elif opcode == Opcode.CHANNEL:
-            channel = Channel.read(ReadDataStream(BytesIO(body)))
-            scan.channels[channel.id] = channel
+        if _take_definition(opcode, body, scan):
+            pass
         elif opcode == Opcode.MESSAGE:
             channel_id, _, log_time, _ = _MESSAGE_HEAD.unpack_from(body)
             messages.setdefault(channel_id, []).append((log_time, pos))
@@ -324,12 +333,8 @@ def scan_mcap(file: Path) -> McapScan:
                     index = scan.chunks[-1].index
                     index.message_index_offsets[channel_id] = pos
                     index.message_index_length += end - pos
-                elif opcode == Opcode.SCHEMA:
-                    schema = Schema.read(ReadDataStream(BytesIO(body)))
-                    scan.schemas[schema.id] = schema
-                elif opcode == Opcode.CHANNEL:
-                    channel = Channel.read(ReadDataStream(BytesIO(body)))
-                    scan.channels[channel.id] = channel
+                elif _take_definition(opcode, body, scan):
+                    pass
                 elif opcode == Opcode.METADATA:
                     name = Metadata.read(ReadDataStream(BytesIO(body))).name
                     scan.metadata.append(MetadataIndex(offset=pos, length=end - pos, name=name))
