@@ -20,7 +20,8 @@ def brute_force_judd(sal: np.ndarray, fix: np.ndarray) -> float:
         xs.append(float(np.mean(neg >= t)))
     xs.append(1.0)
     ys.append(1.0)
-    return float(np.trapezoid(ys, xs))
+    xs, ys = np.asarray(xs, float), np.asarray(ys, float)     # np.trapezoid needs numpy 2
+    return float(np.sum(np.diff(xs) * (ys[1:] + ys[:-1]) / 2))
 
 
 def test_peak_on_fixation_scores_one():
