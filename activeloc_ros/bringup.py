@@ -506,8 +506,11 @@ class StopRequest:
         if self.reason is None:
             self.reason = name
         else:
-            print(f'\n{name}: already stopping the nodes and closing the recording, '
-                  'please wait', file=sys.stderr, flush=True)
+            try:
+                print(f'\n{name}: already stopping the nodes and closing the recording, '
+                      'please wait', file=sys.stderr, flush=True)
+            except RuntimeError:    # the signal came in the middle of another print
+                pass
 
 
 def make_log_dir(args) -> Path:

@@ -22,7 +22,6 @@ from pathlib import Path
 import re
 import signal
 import sys
-import threading
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from rcl_interfaces.msg import (
@@ -309,8 +308,12 @@ def declare(node, params: Sequence[Param], *, cli_args: Sequence[str] | None = N
     return {p.name: node.get_parameter(p.name).value for p in params}
 
 
-def _interrupt(signum, frame):
-    raise KeyboardInterrupt
+class _StopRequest:
+    """Set by a signal handler. A plain attribute, because a handler can interrupt anything,
+    itself included: threading.Event.set takes a lock, and a signal arriving inside it
+    deadlocks the process (seen: a node that the repeated SIGTERMs of its parent's death
+    left hanging for good)."""
+    requested = False
 
 
 def run(node_factory: Callable[..., Any], args=None, *,
@@ -333,15 +336,16 @@ def run(node_factory: Callable[..., Any], args=None, *,
             print(f'error: params file {path} cannot be read: {exc}', file=sys.stderr)
             return 1
     handler = SignalHandlerOptions.NO if on_stop else SignalHandlerOptions.ALL
-    stop = threading.Event()
+    stop = _StopRequest()
 
     def request_stop(signum, frame):
         # The first Ctrl-C or kill only asks the loop to end: an exception raised in the
         # middle of rclpy's C++ (taking a message) would come out as a RuntimeError and
-        # fail the exit. A second one interrupts on_stop at once.
-        stop.set()
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-        signal.signal(signal.SIGTERM, _interrupt)
+        # fail the exit. A second Ctrl-C interrupts on_stop at once; a repeated SIGTERM
+        # (a parent's death can signal more than once) is the same request again.
+        if stop.requested and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        stop.requested = True
 
     if on_stop:
         # Ctrl-C and kill both reach on_stop, even where SIGINT came in ignored (a process
@@ -354,7 +358,7 @@ def run(node_factory: Callable[..., Any], args=None, *,
     try:
         node = node_factory()
         # A node that ends by itself (a camera at the end of its bag) sets `finished`.
-        while rclpy.ok() and not stop.is_set() and not getattr(node, 'finished', False):
+        while rclpy.ok() and not stop.requested and not getattr(node, 'finished', False):
             rclpy.spin_once(node, timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
