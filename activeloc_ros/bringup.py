@@ -28,6 +28,7 @@ image's stamp, the pan and tilt the camera rendered with (`lockstep.recorded_pos
 """
 import argparse
 import ctypes
+import importlib
 import math
 import os
 from pathlib import Path
@@ -240,8 +241,7 @@ def node_params(node: str) -> list:
     if node == 'perception':
         from activeloc_ros.perception_node import model_params, NODE_PARAMS
         return model_params() + NODE_PARAMS
-    module = __import__(f'activeloc_ros.{node}_node', fromlist=['PARAMS'])
-    return list(module.PARAMS)
+    return list(importlib.import_module(f'activeloc_ros.{node}_node').PARAMS)
 
 
 def cli_values(ros_args: list[str]) -> dict:

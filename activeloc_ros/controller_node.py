@@ -47,15 +47,6 @@ MAPPING_PARAMS = (
           read_only=True),
 )
 
-PARAMS = (
-    Param('home_deg', [90, 90, 45, 45, 90, 73], 'Home pose (degrees, camera straight ahead)',
-          pose_problem),
-    Param('pan_joint', 'base', 'Joint that pans the camera', one_of(*JOINT_NAMES)),
-    Param('pan_gain', 1.0, 'Degrees of pan joint per degree of pan (negative flips)'),
-    Param('tilt_joints', ['wrist_ver'], 'Joints that tilt the camera', _joint_names),
-    Param('tilt_gains', [1.0], 'Degrees of each tilt joint per degree of tilt'),
-)
-
 # The gains, limits and filters apply at once when set at run time (ros2 param set); the
 # servo speed, the mapping and the report period are read-only.
 PARAMS = (

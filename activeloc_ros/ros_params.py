@@ -135,6 +135,11 @@ def _flatten(section: Mapping, prefix: str = '') -> dict[str, Any]:
     return flat
 
 
+def _section_node(section) -> str:
+    """The node name a params file section addresses, without its namespace."""
+    return str(section).strip('/').split('/')[-1]
+
+
 def _type_name(kind: Parameter.Type) -> str:
     return kind.name.lower().replace('_', ' ')
 
@@ -159,7 +164,7 @@ def params_file_problems(content, node: str, declared: Mapping[str, Parameter.Ty
     problems = []
     known_elsewhere = set(known_elsewhere)
     for section, body in content.items():
-        target = str(section).strip('/').split('/')[-1]
+        target = _section_node(section)
         if target not in NODE_NAMES + ('*', '**'):
             close = difflib.get_close_matches(target, NODE_NAMES, n=1, cutoff=0.5)
             hint = f' (did you mean /{close[0]}?)' if close else ''
@@ -236,7 +241,7 @@ def file_values(node_name: str, files: Iterable[str]) -> dict[str, Any]:
     values = {}
     for path in files:
         for section, body in (load_params_file(path) or {}).items():
-            if str(section).strip('/').split('/')[-1] in ('*', '**', node_name):
+            if _section_node(section) in ('*', '**', node_name):
                 values.update(_flatten((body or {}).get('ros__parameters') or {}))
     return values
 
@@ -276,10 +281,11 @@ def declare(node, params: Sequence[Param], *, cli_args: Sequence[str] | None = N
         values.update({p.name: p.value for p in changes})
         return values
 
+    # ranges in the descriptor are enforced by rclpy before on_set is called
+    unenforced = [p for p in params if not _in_descriptor(p)]
+
     def on_set(changes):
-        # ranges in the descriptor were enforced by rclpy before this callback
-        errors = validate([p for p in params if not _in_descriptor(p)],
-                          {p.name: p.value for p in changes})
+        errors = validate(unenforced, {p.name: p.value for p in changes})
         if not errors and ready and check_all is not None:
             problem = check_all(values_after(changes), {p.name for p in changes})
             if problem:
