@@ -110,6 +110,19 @@ def test_head_none_needs_matching_width():
         make(head='none')
 
 
+@pytest.mark.parametrize('pad', [8, 224])
+def test_encoder_pad_must_be_whole_cells_smaller_than_the_frame(pad):
+    with pytest.raises(ConfigError, match='encoder_pad'):
+        make(real=True, encoder_pad=pad)
+
+
+@pytest.mark.parametrize('pad', [0, 32])
+def test_the_mirrored_border_keeps_the_grid(pad):
+    model = make(real=True, encoder_pad=pad)
+    result = [model.step(f) for f in clip(2)][-1]
+    assert model.grid == 14 and result.surprise_map.shape == (14, 14)
+
+
 # -- maps and locations ----------------------------------------------------------------------
 @pytest.mark.parametrize('real', [True, False])
 def test_first_map_is_uniform_then_a_distribution_with_its_argmax(real):

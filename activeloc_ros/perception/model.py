@@ -50,6 +50,7 @@ import cv2
 import numpy as np
 import torch
 from torch import nn
+import torch.nn.functional as F
 
 from activeloc_ros.checks import above, at_least, Check, in_range, one_of
 from activeloc_ros.errors import ConfigError, FrameError
@@ -92,6 +93,11 @@ class PerceptionConfig:
         'auto', 'arithmetic of the encoder\'s forward pass: float32, or bfloat16 (features '
         'within ~1% of float32; vgg19 6x faster on AMX cores, slower on CPUs without them); '
         'auto = bfloat16 where the CPU has AMX, else float32', one_of(*PRECISIONS))
+    encoder_pad: int = _param(
+        0, 'pixels of mirrored picture added round the encoder input, whose extra feature '
+        'cells are cut off again: the border cells then see picture, not the zero padding '
+        'of the convolutions, which otherwise makes them the most surprising cells when the '
+        'camera moves (a multiple of the encoder stride, 16; 0 = off, paper)', at_least(0))
     pretrained: bool = _param(
         True, 'load ImageNet weights; False = random encoder, for unit tests only')
     blur_ksize: int = _param(
@@ -436,9 +442,14 @@ class SurpriseModel:
         self.channels = int(encoder.channels)
         with torch.inference_mode():                            # the grid the encoder makes
             zeros = torch.zeros(1, 3, self.size, self.size)
-            probe = self._forward(self.frozen_encoder, self.encoder.preprocess(zeros))
+            probe = self._run(self.frozen_encoder, self.encoder.preprocess(zeros))
         self.grid = int(probe.shape[-1])                        # 14 at 224
         self.cells = self.grid * probe.shape[-2]
+        stride = self.size // self.grid                         # 16 for the 14x14 grid
+        if cfg.encoder_pad % stride or cfg.encoder_pad >= self.size:
+            raise ConfigError(f"perception parameter 'encoder_pad' must be a multiple of the "
+                              f'encoder stride {stride} below {self.size}, got '
+                              f'{cfg.encoder_pad}')
         self.predictor = Predictor(cfg, self.channels)
         self._predict = torch.compile(self.predictor) if cfg.compile else self.predictor
         groups = [{'params': list(self.predictor.parameters()), 'scale': 1.0}]
@@ -526,6 +537,14 @@ class SurpriseModel:
         return self._to_cells(self._forward(encoder, x))
 
     def _forward(self, encoder: nn.Module, x: torch.Tensor) -> torch.Tensor:
+        pad = self.cfg.encoder_pad
+        if not pad:
+            return self._run(encoder, x)
+        crop = pad * self.grid // self.size                     # cells the padding adds
+        f = self._run(encoder, F.pad(x, (pad,) * 4, mode='reflect'))
+        return f[..., crop:f.shape[-2] - crop, crop:f.shape[-1] - crop]
+
+    def _run(self, encoder: nn.Module, x: torch.Tensor) -> torch.Tensor:
         if self.precision == 'float32':
             return encoder(x)
         if encoder is self.frozen_encoder and not self.train_encoder:  # bfloat16 weights
