@@ -34,8 +34,18 @@ attn_rescale, Adam at 1e-3 instead of 1e-6, adaptive boost off, encoder frozen, 
 motion weight 2*sigmoid(|d|)-1 (the literal sigmoid(d) is 0.5 where nothing moves),
 ego_motion (bench screen, dev set, mean AAE 19.1 deg with it vs 20.8 without; its
 ego_warp 'features' against 'image' with vgg19: 19.02 vs 19.24 deg at seed 0, 19.18 vs 19.40
-at seed 1, at 422 vs 678 ms a frame) and vgg19 for the paper's vgg16 (whose weights no
-registry here holds), in bfloat16 where fast.
+at seed 1, at 422 vs 678 ms a frame), encoder_pad (below) and vgg19 for the paper's vgg16
+(whose weights no registry here holds), in bfloat16 where fast.
+
+encoder_pad: under camera motion the map's peak went to the grid's outer ring, the cells
+whose receptive fields reach into the convolutions' zero padding. Measured with `bench
+passive --camera static --max-frames 100 --pan 10` (a camera panning over still scenes; any
+peak off the actors is wrong), over the 5 static dev sequences, encoder_pad 0 / 16 / 32:
+peaks on the outer ring 47.1 / 38.1 / 25.8% (a random cell: 26.5%), hits on frames after a
+camera move 46.6 / 54.9 / 62.1%, all frames 55.8 / 63.9 / 70.4%. The ring share falls on
+every sequence (kitti 65 -> 32%, tud 52 -> 35, crossing 31 -> 18, walking2 75 -> 35, ball1
+13 -> 8). Closed loop (`bench screen --camera static`, seeds 0-2): 11.12 / 10.06 / 10.25 deg
+mean AAE. 32 px costs the encoder 1.65x the work of none (288 px input instead of 224).
 """
 import collections
 import copy
@@ -94,7 +104,7 @@ class PerceptionConfig:
         'within ~1% of float32; vgg19 6x faster on AMX cores, slower on CPUs without them); '
         'auto = bfloat16 where the CPU has AMX, else float32', one_of(*PRECISIONS))
     encoder_pad: int = _param(
-        0, 'pixels of mirrored picture added round the encoder input, whose extra feature '
+        32, 'pixels of mirrored picture added round the encoder input, whose extra feature '
         'cells are cut off again: the border cells then see picture, not the zero padding '
         'of the convolutions, which otherwise makes them the most surprising cells when the '
         'camera moves (a multiple of the encoder stride, 16; 0 = off, paper)', at_least(0))
