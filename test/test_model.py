@@ -291,6 +291,15 @@ def test_checkpoint_resumes_learning_exactly(tmp_path, kw):
     assert same(weights(model), weights(loaded))
 
 
+def test_a_checkpoint_from_before_encoder_pad_loads_without_the_border(tmp_path):
+    path = tmp_path / 'old.pt'
+    make(real=True).save(str(path))
+    ckpt = torch.load(path, weights_only=True)
+    del ckpt['config']['encoder_pad']
+    torch.save(ckpt, path)
+    assert SurpriseModel.load(str(path)).cfg.encoder_pad == 0
+
+
 # -- non-finite values -----------------------------------------------------------------------
 def test_nan_frame_skips_the_update_and_restarts_the_sequence():
     model = make()

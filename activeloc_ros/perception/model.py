@@ -776,7 +776,8 @@ class SurpriseModel:
         """Rebuild a saved model; it continues learning where `save` left it."""
         from activeloc_ros.perception.encoders import build_encoder
         ckpt = torch.load(path, map_location='cpu', weights_only=True)
-        cfg = PerceptionConfig.from_dict(ckpt['config'])
+        # a checkpoint saved before encoder_pad existed was learned without the border
+        cfg = PerceptionConfig.from_dict({'encoder_pad': 0, **ckpt['config']})
         # the checkpoint holds the encoder weights: no weight cache needed
         encoder = build_encoder(cfg.encoder, pretrained=False, classifier=False)
         encoder.load_state_dict(ckpt['encoder'])
