@@ -417,6 +417,16 @@ def test_bfloat16_encoder_gives_float32_features_close_to_float32(update_encoder
     assert 0 < gap < 0.1, gap
 
 
+@pytest.mark.parametrize('amx, avx512_bf16, native', [
+    (False, False, False), (True, False, True), (False, True, True), (True, True, True)])
+def test_auto_precision_takes_bfloat16_where_the_cpu_computes_it_natively(
+        monkeypatch, amx, avx512_bf16, native):
+    monkeypatch.setattr(torch.cpu, '_is_amx_tile_supported', lambda: amx)
+    monkeypatch.setattr(torch.cpu, '_is_avx512_bf16_supported', lambda: avx512_bf16)
+    assert M.fast_bfloat16() is native
+    assert make(encoder_precision='auto').precision == ('bfloat16' if native else 'float32')
+
+
 def test_frame_rms_normalises_every_frame():
     model = make(feature_norm='frame_rms')
     with torch.no_grad():

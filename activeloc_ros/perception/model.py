@@ -72,10 +72,11 @@ PRECISIONS = ('auto', 'float32', 'bfloat16')
 
 
 def fast_bfloat16() -> bool:
-    """Does this CPU have AMX tiles? With them bfloat16 convolutions run several times faster
-    than float32; without them they are emulated and slower."""
-    probe = getattr(torch.cpu, '_is_amx_tile_supported', None)   # private in torch 2.13
-    return bool(probe is not None and probe())
+    """Does this CPU compute in bfloat16 natively: AMX tiles (Intel Sapphire Rapids on) or
+    AVX512_BF16 dot products (AMD Zen 4 on, Intel Cooper Lake)? There bfloat16 convolutions
+    run faster than float32; elsewhere they are emulated and slower."""
+    probes = ('_is_amx_tile_supported', '_is_avx512_bf16_supported')  # private in torch 2.13
+    return any(bool(getattr(torch.cpu, name, lambda: False)()) for name in probes)
 
 
 def _blur(value: int) -> 'str | None':
@@ -101,8 +102,9 @@ class PerceptionConfig:
     weights: str = _param('', 'encoder weights file; empty = the package weight cache')
     encoder_precision: str = _param(
         'auto', 'arithmetic of the encoder\'s forward pass: float32, or bfloat16 (features '
-        'within ~1% of float32; vgg19 6x faster on AMX cores, slower on CPUs without them); '
-        'auto = bfloat16 where the CPU has AMX, else float32', one_of(*PRECISIONS))
+        'within ~1% of float32; faster where the CPU computes it natively, slower where it is '
+        'emulated); auto = bfloat16 where the CPU has AMX or AVX512_BF16, else float32',
+        one_of(*PRECISIONS))
     encoder_pad: int = _param(
         32, 'pixels of mirrored picture added round the encoder input, whose extra feature '
         'cells are cut off again: the border cells then see picture, not the zero padding '
