@@ -18,7 +18,10 @@ a capture sees the scene frame on the screen at that moment. Two modes:
 Scoring, at every scene frame with an annotated actor: the angle between the optical axis
 and the ray to the closest actor's centre (AAE), whether any actor's centre is in view, and
 AUC-Judd of the pointer's newest map laid on the screen where the camera looked
-(``VirtualScreen.place_map``) against the closest actor's centre.
+(``VirtualScreen.place_map``) against the closest actor's centre. At every such frame the
+pointer processed, the pointing error: the angle between the ray to the location it gave
+and the ray to the actor's centre nearest that location. It scores the perception alone:
+the AAE also pays for the arm's lag and the controller's rules.
 """
 from dataclasses import dataclass, field
 import math
@@ -81,6 +84,7 @@ class FrameRecord:
     aae_deg: float = math.nan
     in_view: bool = False
     auc: float = math.nan
+    pointing_deg: float = math.nan                   # processed frames with a location
     truth_xy: tuple[float, float] | None = None      # closest actor centre, scene px
     predicted_xy: tuple[float, float] | None = None  # newest location, scene px
 
@@ -100,6 +104,7 @@ class Episode:
     def summary(self) -> dict:
         rows = self.scored()
         aucs = [r.auc for r in rows if math.isfinite(r.auc)]
+        pointing = [r.pointing_deg for r in rows if math.isfinite(r.pointing_deg)]
         return {
             'frames': len(self.records),
             'scored': len(rows),
@@ -107,6 +112,7 @@ class Episode:
             'aae_deg': float(np.mean([r.aae_deg for r in rows])) if rows else math.nan,
             'auc_judd': float(np.mean(aucs)) if aucs else math.nan,
             'in_view': float(np.mean([r.in_view for r in rows])) if rows else math.nan,
+            'pointing_deg': float(np.mean(pointing)) if pointing else math.nan,
             'compute_ms': float(np.mean(self.compute_s) * 1e3) if self.compute_s else 0.0,
         }
 
@@ -202,6 +208,7 @@ def run_episode(frames: Iterable[tuple[int, np.ndarray, FrameTruth]], pointer: P
         pan, tilt = screen.pan_tilt(joints)
         points = np.array([_centre(b) for b in truth.actors], np.float64).reshape(-1, 2)
         processed = False
+        pointed = None
         rgb = None
         if t + 1e-9 >= captures * period:
             captures += 1
@@ -217,6 +224,7 @@ def run_episode(frames: Iterable[tuple[int, np.ndarray, FrameTruth]], pointer: P
         if view is not None and (mode == 'lockstep' or busy_until <= t):
             busy_until = process(view, scene_wh, t)
             processed = True
+            pointed = results[-1][4]
         elif view is not None:
             queued = (view, scene_wh)
         # the newest result available at t
@@ -232,6 +240,9 @@ def run_episode(frames: Iterable[tuple[int, np.ndarray, FrameTruth]], pointer: P
             record.aae_deg = float(angles[closest])
             record.in_view = bool(np.any(screen.in_view(points, pan, tilt, scene_wh)))
             record.truth_xy = (float(points[closest, 0]), float(points[closest, 1]))
+            if pointed is not None:
+                record.pointing_deg = float(np.min(screen.angles_from_deg(points, pointed,
+                                                                          scene_wh)))
             if newest_map is not None:
                 heat, mpan, mtilt = newest_map
                 placed = screen.place_map(heat, mpan, mtilt, CANVAS)

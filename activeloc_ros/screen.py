@@ -243,6 +243,16 @@ class VirtualScreen:
         axis = self.rotation(pan, tilt)[:, 2]
         return np.array([metrics.angle_between(axis, ray) for ray in world.T])
 
+    def angles_from_deg(self, points_xy: Iterable[Sequence[float]], origin_xy: Sequence[float],
+                        scene_wh: tuple[int, int]) -> np.ndarray:
+        """Angle (degrees), seen from the camera's optical centre, between the ray to
+        `origin_xy` and the ray to each scene point."""
+        pts = np.asarray(list(points_xy), dtype=np.float64).reshape(-1, 2)
+        to_world = self.scene_to_world(scene_wh)
+        origin = to_world @ np.array([origin_xy[0], origin_xy[1], 1.0])
+        world = to_world @ np.hstack([pts, np.ones((len(pts), 1))]).T
+        return np.array([metrics.angle_between(origin, ray) for ray in world.T])
+
     def view_outline(self, pan: float, tilt: float, scene_wh: tuple[int, int],
                      *, samples: int = 8) -> np.ndarray:
         """The border of the camera's view in scene pixels (M, 2), rays that miss dropped."""

@@ -158,6 +158,16 @@ def test_oracle_follows_the_walker_and_centre_loses_it(tmp_path):
     assert oracle['auc_judd'] > 0.9 > centre['auc_judd']
 
 
+def test_pointing_error_scores_the_location_not_the_camera(tmp_path):
+    seq = data.load_sequence(make_walker(tmp_path))
+    oracle = episode(seq, OraclePointer())
+    seen = [r for r in oracle.records if r.in_view]
+    assert seen and max(r.pointing_deg for r in seen) < 0.1      # it points at the walker
+    summary = oracle.summary()
+    assert summary['aae_deg'] > summary['pointing_deg']      # the arm lags behind it
+    assert math.isnan(episode(seq, CentrePointer()).summary()['pointing_deg'])  # no location
+
+
 def test_lockstep_is_deterministic(tmp_path):
     seq = data.load_sequence(make_walker(tmp_path))
     runs = [[(r.pan, r.tilt, r.auc) for r in episode(seq, RandomPointer(seed=3)).records]

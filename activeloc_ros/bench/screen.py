@@ -6,8 +6,10 @@ Every method drives the same controller and simulated Braccio through the virtua
 (``closed_loop.run_episode``). Per sequence and overall (the mean over sequences): AAE
 (degrees, to the closest annotated actor), AUC-Judd (the method's map laid on the screen
 where the camera looked, against the closest actor's centre; a method that gives only a
-point gets a Gaussian of one map cell there) and the in-view rate. Writes a Markdown table,
-a CSV, a JSON file, one plot per metric and an overlay video per run, all atomically.
+point gets a Gaussian of one map cell there), the in-view rate and the pointing error (the
+angle from the location the method gave to the nearest actor, on the frames it processed:
+its perception alone, without the arm's lag). Writes a Markdown table, a CSV, a JSON file,
+one plot per metric and an overlay video per run, all atomically.
 """
 import argparse
 import csv
@@ -47,7 +49,8 @@ MOTION_METHODS = ('framediff', 'mog2')     # unsupervised anchors on the picture
 METHODS = (*MODEL_METHODS, 'random', 'centre', 'oracle', *MOTION_METHODS, *TRACKER_METHODS)
 METRICS = (('aae_deg', 'AAE (deg)', 'lower is better'),
            ('auc_judd', 'AUC-Judd (%)', 'higher is better'),
-           ('in_view', 'in view (%)', 'higher is better'))
+           ('in_view', 'in view (%)', 'higher is better'),
+           ('pointing_deg', 'pointing error (deg)', 'lower is better'))
 
 
 def method_parts(name: str) -> tuple[dict, str | None]:
@@ -177,11 +180,12 @@ def _frame_row(r: FrameRecord) -> list:
     return [r.index, round(r.t, 4), round(math.degrees(r.pan), 3),
             round(math.degrees(r.tilt), 3), r.processed, r.scored,
             None if math.isnan(r.aae_deg) else round(r.aae_deg, 3), r.in_view,
-            None if math.isnan(r.auc) else round(r.auc, 4)]
+            None if math.isnan(r.auc) else round(r.auc, 4),
+            None if math.isnan(r.pointing_deg) else round(r.pointing_deg, 3)]
 
 
 FRAME_COLUMNS = ['index', 't', 'pan_deg', 'tilt_deg', 'processed', 'scored', 'aae_deg',
-                 'in_view', 'auc_judd']
+                 'in_view', 'auc_judd', 'pointing_deg']
 
 
 class OverlayVideo:
@@ -339,12 +343,14 @@ def summarise(runs: list[dict], methods: list[str], sequences: list[data.Sequenc
 def _fmt(key: str, value: float) -> str:
     if value != value:
         return '-'
-    return f'{value:.2f}' if key == 'aae_deg' else f'{100 * value:.1f}'
+    return f'{value:.2f}' if key.endswith('_deg') else f'{100 * value:.1f}'
 
 
 def markdown(result: dict) -> str:
-    lines = ['| method | AAE (deg) ↓ | AUC-Judd (%) ↑ | in view (%) ↑ | ms/frame |',
-             '|---|---:|---:|---:|---:|']
+    arrows = {'lower is better': '↓', 'higher is better': '↑'}
+    lines = ['| method | ' + ' | '.join(f'{title} {arrows[better]}'
+                                       for _, title, better in METRICS) + ' | ms/frame |',
+             '|---|' + '---:|' * (len(METRICS) + 1)]
     for row in result['methods']:
         lines.append(f'| {row["method"]} | ' + ' | '.join(
             _fmt(k, row[k]) for k, _, _ in METRICS) + f' | {row["compute_ms"]:.1f} |')
@@ -365,7 +371,7 @@ def markdown(result: dict) -> str:
 def to_csv(result: dict) -> str:
     out = io.StringIO()
     w = csv.writer(out)
-    w.writerow(['method', 'sequence', 'aae_deg', 'auc_judd', 'in_view', 'compute_ms'])
+    w.writerow(['method', 'sequence', *(k for k, _, _ in METRICS), 'compute_ms'])
     for row in result['methods']:
         w.writerow([row['method'], 'mean', *(f'{row[k]:.4f}' for k, _, _ in METRICS),
                     f'{row["compute_ms"]:.2f}'])
@@ -391,7 +397,7 @@ def plots(result: dict, out: Path) -> list[Path]:
         colours = plt.get_cmap('tab20')       # 20 distinct colours: a table has 16 methods
         for i, row in enumerate(result['methods']):
             values = [row['sequences'][s][key] for s in names]
-            if key != 'aae_deg':
+            if not key.endswith('_deg'):
                 values = [100 * v for v in values]
             ax.bar(np.arange(len(names)) + i * width - 0.4 + width / 2, values, width,
                    label=row['method'], color=colours(i % colours.N))
@@ -416,7 +422,8 @@ def parser() -> argparse.ArgumentParser:
         prog='python -m activeloc_ros.bench screen',
         description='The projected-screen experiment (paper Table 2) in simulated time: '
                     'each method steers the simulated Braccio through a virtual screen; '
-                    'AAE, AUC-Judd and in-view rate per sequence and overall.')
+                    'AAE, AUC-Judd, in-view rate and pointing error per sequence and '
+                    'overall.')
     add_sequence_options(p)
     p.add_argument('--methods', nargs='+', metavar='NAME',
                    help=f'methods (default all): {", ".join(METHODS)}')
