@@ -19,9 +19,10 @@ Scoring, at every scene frame with an annotated actor: the angle between the opt
 and the ray to the closest actor's centre (AAE), whether any actor's centre is in view, and
 AUC-Judd of the pointer's newest map laid on the screen where the camera looked
 (``VirtualScreen.place_map``) against the closest actor's centre. At every such frame the
-pointer processed, the pointing error: the angle between the ray to the location it gave
-and the ray to the actor's centre nearest that location. It scores the perception alone:
-the AAE also pays for the arm's lag and the controller's rules.
+pointer processed (in realtime mode also later, from the queue), the pointing error: the
+angle between the camera's ray to the location it gave and its ray to the actor's centre
+nearest that location, both at capture. It scores the perception alone: the AAE also pays
+for the arm's lag and the controller's rules.
 """
 from dataclasses import dataclass, field
 import math
@@ -169,6 +170,8 @@ def run_episode(frames: Iterable[tuple[int, np.ndarray, FrameTruth]], pointer: P
     newest_map: tuple[np.ndarray, float, float] | None = None   # (heat, pan, tilt)
     newest_xy: tuple[float, float] | None = None
     results: list[tuple[float, np.ndarray, float, float, tuple | None]] = []  # for realtime
+    pointing_deg: dict[int, float] = {}   # scene frame index -> error of its location
+    recorded: dict[int, FrameRecord] = {}
 
     def process(view: View, scene_wh: tuple[int, int], start: float) -> float:
         t0 = time.perf_counter()
@@ -181,6 +184,9 @@ def run_episode(frames: Iterable[tuple[int, np.ndarray, FrameTruth]], pointer: P
         xy = None
         if pointing.location is not None:
             u, v = pointing.location
+            angles = screen.pixel_angles_deg((u, v), view.truth_px)
+            if np.any(np.isfinite(angles)):
+                pointing_deg[view.index] = float(np.nanmin(angles))
             hit = screen.to_scene([(u, v)], view.pan, view.tilt, scene_wh)[0]
             xy = (float(hit[0]), float(hit[1])) if np.all(np.isfinite(hit)) else None
             cmd = ctl.on_location(u, v, view.t, done, peak=pointing.peak)
@@ -208,7 +214,6 @@ def run_episode(frames: Iterable[tuple[int, np.ndarray, FrameTruth]], pointer: P
         pan, tilt = screen.pan_tilt(joints)
         points = np.array([_centre(b) for b in truth.actors], np.float64).reshape(-1, 2)
         processed = False
-        pointed = None
         rgb = None
         if t + 1e-9 >= captures * period:
             captures += 1
@@ -224,7 +229,6 @@ def run_episode(frames: Iterable[tuple[int, np.ndarray, FrameTruth]], pointer: P
         if view is not None and (mode == 'lockstep' or busy_until <= t):
             busy_until = process(view, scene_wh, t)
             processed = True
-            pointed = results[-1][4]
         elif view is not None:
             queued = (view, scene_wh)
         # the newest result available at t
@@ -240,9 +244,6 @@ def run_episode(frames: Iterable[tuple[int, np.ndarray, FrameTruth]], pointer: P
             record.aae_deg = float(angles[closest])
             record.in_view = bool(np.any(screen.in_view(points, pan, tilt, scene_wh)))
             record.truth_xy = (float(points[closest, 0]), float(points[closest, 1]))
-            if pointed is not None:
-                record.pointing_deg = float(np.min(screen.angles_from_deg(points, pointed,
-                                                                          scene_wh)))
             if newest_map is not None:
                 heat, mpan, mtilt = newest_map
                 placed = screen.place_map(heat, mpan, mtilt, CANVAS)
@@ -253,6 +254,11 @@ def run_episode(frames: Iterable[tuple[int, np.ndarray, FrameTruth]], pointer: P
                 fixation[row, col] = 1
                 record.auc = metrics.auc_judd(placed, fixation)
         episode.records.append(record)
+        recorded[index] = record
+        for i, value in pointing_deg.items():   # realtime: also frames taken from the queue
+            if recorded[i].scored:
+                recorded[i].pointing_deg = value
+        pointing_deg.clear()
         if on_frame is not None:
             on_frame(scene, record, rgb)
     return episode
