@@ -4,8 +4,9 @@ For each encoder and each encoder-update setting, a fresh process builds a `Surp
 steps it through N frames of a video or of a synthetic moving scene, then reports the
 per-frame latency (p50/p95 of `step`), frames/s, peak RSS and how RSS grew from the steady
 state (after warm-up, the first weight snapshot and a tenth of the run) to the last frame: it
-must stay flat over long runs. Frame generation and
-decoding are outside the timings.
+must stay flat over long runs. Frame generation and decoding are outside the timings. Every
+report names the CPU, the instruction sets that decide the encoder's arithmetic, and the
+precision each row ran in.
 
     python -m activeloc_ros.bench perception --encoder efficientnet_lite0 --frames 2000
 """
@@ -14,6 +15,7 @@ import concurrent.futures
 import json
 import multiprocessing
 import os
+import platform
 import resource
 import sys
 import time
@@ -106,6 +108,33 @@ def video(path: str) -> Iterator[np.ndarray]:
         yield cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
+# torch's probes of what decides the encoder's speed (private in torch 2.13)
+CPU_FEATURES = (('AVX2', '_is_avx2_supported'), ('AVX512', '_is_avx512_supported'),
+                ('VNNI', '_is_vnni_supported'), ('AVX512_BF16', '_is_avx512_bf16_supported'),
+                ('AMX', '_is_amx_tile_supported'))
+
+
+def cpu_info() -> dict[str, Any]:
+    """The CPU's model name and which of `CPU_FEATURES` it has."""
+    import torch
+    model = platform.processor() or 'unknown CPU'
+    try:
+        with open('/proc/cpuinfo') as f:
+            model = next((line.split(':', 1)[1].strip() for line in f
+                          if line.startswith('model name')), model)
+    except OSError:
+        pass
+    flags = [name for name, probe in CPU_FEATURES
+             if bool(getattr(torch.cpu, probe, lambda: False)())]
+    return {'model': model, 'cores': os.cpu_count(), 'flags': flags}
+
+
+def describe_cpu(cpu: dict[str, Any]) -> str:
+    missing = [name for name, _ in CPU_FEATURES if name not in cpu['flags']]
+    return (f'{cpu["model"]}, {cpu["cores"]} cores, {", ".join(cpu["flags"]) or "no AVX2"}'
+            + (f'; no {", ".join(missing)}' if missing else ''))
+
+
 def rss_mb() -> float:
     with open('/proc/self/statm') as f:
         pages = int(f.read().split()[1])
@@ -152,6 +181,7 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
     slope = np.polyfit(np.arange(len(tail)), tail, 1)[0] * 1000 if len(tail) > 1 else 0.0
     return {
         'encoder': cfg.encoder, 'update_encoder': cfg.update_encoder,
+        'precision': model.precision, 'cpu': cpu_info(),
         'frames': n, 'warmup': warmup, 'threads': job['threads'],
         'p50_ms': float(np.percentile(lat, 50) * 1e3),
         'p95_ms': float(np.percentile(lat, 95) * 1e3),
@@ -169,14 +199,15 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
 
 
 def table(rows: list[dict[str, Any]]) -> str:
-    head = (f'{"encoder":<19}{"upd.enc":>8}{"frames":>7}{"p50 ms":>8}{"p95 ms":>8}'
-            f'{"fps":>7}{"peakRSS MB":>11}{"RSS growth MB":>14}  p50 ms: '
+    head = (f'{"encoder":<19}{"upd.enc":>8}{"precision":>10}{"frames":>7}{"p50 ms":>8}'
+            f'{"p95 ms":>8}{"fps":>7}{"peakRSS MB":>11}{"RSS growth MB":>14}  p50 ms: '
             f'{" / ".join(SHORT[s] for s in STAGES)}')
     lines = [head, '-' * len(head)]
     for r in rows:
         s = r['stage_p50_ms']
         lines.append(
-            f'{r["encoder"]:<19}{"yes" if r["update_encoder"] else "no":>8}{r["frames"]:>7}'
+            f'{r["encoder"]:<19}{"yes" if r["update_encoder"] else "no":>8}'
+            f'{r["precision"]:>10}{r["frames"]:>7}'
             f'{r["p50_ms"]:>8.1f}{r["p95_ms"]:>8.1f}{r["fps"]:>7.1f}{r["peak_rss_mb"]:>11.0f}'
             f'{r["rss_growth_mb"]:>+14.1f}  ' + ' / '.join(f'{s[k]:.1f}' for k in STAGES))
     return '\n'.join(lines)
@@ -227,5 +258,6 @@ def main(argv: list[str]) -> int:
         print(f'perception bench: {src}, {args.threads} threads; latency and fps over frames '
               f'{args.warmup}..{args.frames}; RSS growth from frame {rows[0]["rss_base_frame"]} '
               f'(steady state) to the last')
+        print(f'CPU: {describe_cpu(rows[0]["cpu"])}')
         print(table(rows))
     return 1 if failed else 0

@@ -1,0 +1,28 @@
+"""`bench perception` names the CPU and the precision of every row it times."""
+import json
+
+import torch
+
+from activeloc_ros.bench import perception as bench
+
+
+def test_every_row_names_its_cpu_flags_and_precision(capsys):
+    argv = ['--encoder', 'efficientnet_lite0', '--random-weights', '--frames', '3',
+            '--warmup', '1', '--update-encoder', 'no', '--size', '96x64', '--threads', '1']
+    assert bench.main(argv + ['--set', 'encoder_precision=float32', '--json']) == 0
+    row, = json.loads(capsys.readouterr().out)
+    assert row['precision'] == 'float32' and row['frames'] == 3
+    cpu = row['cpu']
+    assert cpu['model'] and cpu['cores'] >= 1
+    assert ('AVX512_BF16' in cpu['flags']) == torch.cpu._is_avx512_bf16_supported()
+    assert ('AMX' in cpu['flags']) == torch.cpu._is_amx_tile_supported()
+
+    assert bench.main(argv) == 0
+    out = capsys.readouterr().out
+    assert f'CPU: {cpu["model"]}' in out
+    assert 'precision' in out.splitlines()[2]
+
+
+def test_the_cpu_line_says_what_is_missing():
+    line = bench.describe_cpu({'model': 'X', 'cores': 2, 'flags': ['AVX2', 'AVX512']})
+    assert line == 'X, 2 cores, AVX2, AVX512; no VNNI, AVX512_BF16, AMX'
