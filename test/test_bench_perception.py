@@ -1,6 +1,7 @@
 """`bench perception` names the CPU and the precision of every row it times."""
 import json
 
+import pytest
 import torch
 
 from activeloc_ros.bench import perception as bench
@@ -26,3 +27,21 @@ def test_every_row_names_its_cpu_flags_and_precision(capsys):
 def test_the_cpu_line_says_what_is_missing():
     line = bench.describe_cpu({'model': 'X', 'cores': 2, 'flags': ['AVX2', 'AVX512']})
     assert line == 'X, 2 cores, AVX2, AVX512; no VNNI, AVX512_BF16, AMX'
+
+
+def test_floor_counts_each_stage_and_divides_by_a_measured_peak(capsys):
+    argv = ['--encoder', 'efficientnet_lite0', '--random-weights', '--frames', '3',
+            '--warmup', '1', '--update-encoder', 'no', '--size', '96x64', '--threads', '1',
+            '--set', 'encoder_precision=float32', '--set', 'hidden=64', '--floor',
+            '--json']
+    assert bench.main(argv) == 0
+    floor = json.loads(capsys.readouterr().out)[0]['floor']
+    assert set(floor['peak_gflops']) == {'float32'} and floor['peak_gflops']['float32'] > 0
+    stages = floor['stages']
+    assert list(stages) == ['encode', 'predict', 'update']
+    for v in stages.values():
+        assert v['gflop'] > 0 and v['measured_ms'] > 0
+        assert v['floor_ms'] * 1e-3 == pytest.approx(v['gflop'] / floor['peak_gflops']['float32'])
+        assert v['ratio'] == pytest.approx(v['measured_ms'] / v['floor_ms'])
+    # a backward pass costs about twice its forward
+    assert 1.0 < stages['update']['gflop'] / stages['predict']['gflop'] < 3.0

@@ -6,13 +6,16 @@ per-frame latency (p50/p95 of `step`), frames/s, peak RSS and how RSS grew from 
 state (after warm-up, the first weight snapshot and a tenth of the run) to the last frame: it
 must stay flat over long runs. Frame generation and decoding are outside the timings. Every
 report names the CPU, the instruction sets that decide the encoder's arithmetic, and the
-precision each row ran in.
+precision each row ran in. `--floor` adds each stage's arithmetic floor: its GFLOP (counted
+by torch's FlopCounterMode on one frame) over this CPU's peak, measured with a matmul in the
+stage's precision, and the ratio of the measured p50 to that floor.
 
     python -m activeloc_ros.bench perception --encoder efficientnet_lite0 --frames 2000
 """
 import argparse
 import concurrent.futures
 import json
+import math
 import multiprocessing
 import os
 import platform
@@ -52,6 +55,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                    help='random encoder weights: same cost, no weight files needed')
     p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
                    help='any PerceptionConfig field, e.g. --set hidden=256')
+    p.add_argument('--floor', action='store_true',
+                   help="also each stage's arithmetic floor (GFLOP over a measured matmul "
+                        'peak) and the measured/floor ratio')
     p.add_argument('--json', action='store_true', help='print the rows as JSON')
     args = p.parse_args(argv)
     if args.frames <= args.warmup:
@@ -135,6 +141,77 @@ def describe_cpu(cpu: dict[str, Any]) -> str:
             + (f'; no {", ".join(missing)}' if missing else ''))
 
 
+def matmul_peak_gflops(dtype_name: str, *, n: int = 2048, seconds: float = 1.0) -> float:
+    """GFLOP/s of an n x n matmul in this dtype on torch's current threads (the best of
+    repeated timings for about `seconds`)."""
+    import torch
+    dtype = getattr(torch, dtype_name)
+    a, b = torch.randn(n, n).to(dtype), torch.randn(n, n).to(dtype)
+    a @ b
+    best, start = math.inf, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        t0 = time.perf_counter()
+        a @ b
+        best = min(best, time.perf_counter() - t0)
+    return 2 * n ** 3 / best / 1e9
+
+
+def stage_gflop(model, frame: np.ndarray) -> dict[str, float]:
+    """GFLOP of one frame's encode, predict (forward) and update (the extra backward) on a
+    model that has seen at least two frames."""
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    def count(fn) -> float:
+        with FlopCounterMode(display=False) as counter:
+            fn()
+        return counter.get_total_flops() / 1e9
+
+    x = model.preprocess(frame)
+
+    def encode():
+        with torch.inference_mode():
+            model._features(model.frozen_encoder, x)
+
+    def predict():
+        with torch.no_grad():
+            model.predictor(model.f_prev, model.state)
+
+    def learn():
+        fhat, alpha, _ = model.predictor(model.f_prev, model.state)
+        (fhat.square().mean() + alpha.square().sum()).backward()
+        model.predictor.zero_grad(set_to_none=True)
+
+    forward = count(predict)
+    return {'encode': count(encode), 'predict': forward, 'update': count(learn) - forward}
+
+
+def floors(model, frame: np.ndarray, stage_ms: dict[str, float]) -> dict[str, Any]:
+    """Each stage's floor (its GFLOP at the measured matmul peak of its precision)."""
+    gflop = stage_gflop(model, frame)
+    peaks = {p: matmul_peak_gflops(p) for p in sorted({'float32', model.precision})}
+    out = {'peak_gflops': peaks, 'stages': {}}
+    for stage, work in gflop.items():
+        precision = model.precision if stage == 'encode' else 'float32'
+        floor_ms = work / peaks[precision] * 1e3
+        out['stages'][stage] = {'gflop': work, 'precision': precision, 'floor_ms': floor_ms,
+                                'measured_ms': stage_ms[stage],
+                                'ratio': stage_ms[stage] / floor_ms if floor_ms else math.nan}
+    return out
+
+
+def floor_table(row: dict[str, Any]) -> str:
+    f = row['floor']
+    peaks = ', '.join(f'{p} {g:.0f}' for p, g in f['peak_gflops'].items())
+    lines = [f'{row["encoder"]} floors (matmul peak GFLOP/s: {peaks}):',
+             f'{"stage":<10}{"precision":>10}{"GFLOP":>8}{"floor ms":>10}{"p50 ms":>8}'
+             f'{"ratio":>7}']
+    for stage, v in f['stages'].items():
+        lines.append(f'{stage:<10}{v["precision"]:>10}{v["gflop"]:>8.2f}{v["floor_ms"]:>10.1f}'
+                     f'{v["measured_ms"]:>8.1f}{v["ratio"]:>7.2f}')
+    return '\n'.join(lines)
+
+
 def rss_mb() -> float:
     with open('/proc/self/statm') as f:
         pages = int(f.read().split()[1])
@@ -179,15 +256,15 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
     base = min(n - 1, max(warmup + cfg.snapshot_every + 1, n // 10))
     tail = rss[base:]
     slope = np.polyfit(np.arange(len(tail)), tail, 1)[0] * 1000 if len(tail) > 1 else 0.0
-    return {
+    stage_ms = {k: float(np.median(stages[warmup:, j]) * 1e3) for j, k in enumerate(STAGES)}
+    row = {
         'encoder': cfg.encoder, 'update_encoder': cfg.update_encoder,
         'precision': model.precision, 'cpu': cpu_info(),
         'frames': n, 'warmup': warmup, 'threads': job['threads'],
         'p50_ms': float(np.percentile(lat, 50) * 1e3),
         'p95_ms': float(np.percentile(lat, 95) * 1e3),
         'fps': float(len(lat) / lat.sum()),
-        'stage_p50_ms': {k: float(np.median(stages[warmup:, j]) * 1e3)
-                         for j, k in enumerate(STAGES)},
+        'stage_p50_ms': stage_ms,
         'peak_rss_mb': peak_rss_mb(),
         'rss_base_frame': int(base),
         'rss_base_mb': float(rss[base]),
@@ -196,6 +273,9 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
         'nan_events': res.nan_events,
         'config': cfg.to_dict(),
     }
+    if job['floor']:
+        row['floor'] = floors(model, frame, stage_ms)
+    return row
 
 
 def table(rows: list[dict[str, Any]]) -> str:
@@ -240,7 +320,8 @@ def main(argv: list[str]) -> int:
                 print(f'error: {err}', file=sys.stderr)
                 return 2
             jobs.append({'config': config, 'frames': args.frames, 'warmup': args.warmup,
-                         'video': args.video, 'size': size, 'threads': args.threads})
+                         'video': args.video, 'size': size, 'threads': args.threads,
+                         'floor': args.floor})
     rows, failed = [], 0
     spawn = multiprocessing.get_context('spawn')
     for job in jobs:
@@ -260,4 +341,7 @@ def main(argv: list[str]) -> int:
               f'(steady state) to the last')
         print(f'CPU: {describe_cpu(rows[0]["cpu"])}')
         print(table(rows))
+        for row in rows:
+            if 'floor' in row:
+                print('\n' + floor_table(row))
     return 1 if failed else 0
