@@ -171,6 +171,8 @@ def run_episode(frames: Iterable[tuple[int, np.ndarray, FrameTruth]], pointer: P
     newest_xy: tuple[float, float] | None = None
     results: list[tuple[float, np.ndarray, float, float, tuple | None]] = []  # for realtime
     pointing_deg: dict[int, float] = {}   # scene frame index -> error of its location
+    intr = screen.intrinsics
+    camera = {'fx': intr.fx, 'fy': intr.fy, 'cx': intr.cx, 'cy': intr.cy}
     recorded: dict[int, FrameRecord] = {}
 
     def process(view: View, scene_wh: tuple[int, int], start: float) -> float:
@@ -184,9 +186,11 @@ def run_episode(frames: Iterable[tuple[int, np.ndarray, FrameTruth]], pointer: P
         xy = None
         if pointing.location is not None:
             u, v = pointing.location
-            angles = screen.pixel_angles_deg((u, v), view.truth_px)
-            if np.any(np.isfinite(angles)):
-                pointing_deg[view.index] = float(np.nanmin(angles))
+            actors = [metrics.pixel_ray(p, **camera) for p in view.truth_px
+                      if np.all(np.isfinite(p))]
+            if actors:
+                pointing_deg[view.index] = metrics.closest_angle(
+                    metrics.pixel_ray((u, v), **camera), actors)
             hit = screen.to_scene([(u, v)], view.pan, view.tilt, scene_wh)[0]
             xy = (float(hit[0]), float(hit[1])) if np.all(np.isfinite(hit)) else None
             cmd = ctl.on_location(u, v, view.t, done, peak=pointing.peak)

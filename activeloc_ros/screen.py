@@ -243,16 +243,6 @@ class VirtualScreen:
         axis = self.rotation(pan, tilt)[:, 2]
         return np.array([metrics.angle_between(axis, ray) for ray in world.T])
 
-    def pixel_angles_deg(self, origin_uv: Sequence[float],
-                         pixels_uv: Iterable[Sequence[float]]) -> np.ndarray:
-        """Angle (degrees) between the camera's ray through pixel `origin_uv` and its ray
-        through each of `pixels_uv` (which may lie outside the image; NaN ones give NaN)."""
-        uv = np.asarray(list(pixels_uv), dtype=np.float64).reshape(-1, 2)
-        origin = self.K_inv @ np.array([origin_uv[0], origin_uv[1], 1.0])
-        rays = self.K_inv @ np.hstack([uv, np.ones((len(uv), 1))]).T
-        return np.array([metrics.angle_between(origin, ray) if np.all(np.isfinite(ray))
-                         else math.nan for ray in rays.T])
-
     def view_outline(self, pan: float, tilt: float, scene_wh: tuple[int, int],
                      *, samples: int = 8) -> np.ndarray:
         """The border of the camera's view in scene pixels (M, 2), rays that miss dropped."""
