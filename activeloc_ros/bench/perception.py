@@ -114,15 +114,9 @@ def video(path: str) -> Iterator[np.ndarray]:
         yield cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
-# torch's probes of what decides the encoder's speed (private in torch 2.13)
-CPU_FEATURES = (('AVX2', '_is_avx2_supported'), ('AVX512', '_is_avx512_supported'),
-                ('VNNI', '_is_vnni_supported'), ('AVX512_BF16', '_is_avx512_bf16_supported'),
-                ('AMX', '_is_amx_tile_supported'))
-
-
 def cpu_info() -> dict[str, Any]:
-    """The CPU's model name and which of `CPU_FEATURES` it has."""
-    import torch
+    """The CPU's model name and which of `model.CPU_FEATURES` it has."""
+    from activeloc_ros.perception.model import cpu_flags
     model = platform.processor() or 'unknown CPU'
     try:
         with open('/proc/cpuinfo') as f:
@@ -130,12 +124,11 @@ def cpu_info() -> dict[str, Any]:
                           if line.startswith('model name')), model)
     except OSError:
         pass
-    flags = [name for name, probe in CPU_FEATURES
-             if bool(getattr(torch.cpu, probe, lambda: False)())]
-    return {'model': model, 'cores': os.cpu_count(), 'flags': flags}
+    return {'model': model, 'cores': os.cpu_count(), 'flags': cpu_flags()}
 
 
 def describe_cpu(cpu: dict[str, Any]) -> str:
+    from activeloc_ros.perception.model import CPU_FEATURES
     missing = [name for name, _ in CPU_FEATURES if name not in cpu['flags']]
     return (f'{cpu["model"]}, {cpu["cores"]} cores, {", ".join(cpu["flags"]) or "no AVX2"}'
             + (f'; no {", ".join(missing)}' if missing else ''))

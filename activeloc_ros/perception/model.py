@@ -71,12 +71,23 @@ MOTIONS = ('abs_sigmoid', 'sigmoid', 'raw', 'none')
 PRECISIONS = ('auto', 'float32', 'bfloat16')
 
 
+# torch's probes of the instruction sets that decide the encoder's speed (private in 2.13)
+CPU_FEATURES = (('AVX2', '_is_avx2_supported'), ('AVX512', '_is_avx512_supported'),
+                ('VNNI', '_is_vnni_supported'), ('AVX512_BF16', '_is_avx512_bf16_supported'),
+                ('AMX', '_is_amx_tile_supported'))
+
+
+def cpu_flags() -> list[str]:
+    """Which of `CPU_FEATURES` this CPU has."""
+    return [name for name, probe in CPU_FEATURES
+            if bool(getattr(torch.cpu, probe, lambda: False)())]
+
+
 def fast_bfloat16() -> bool:
     """Does this CPU compute in bfloat16 natively: AMX tiles (Intel Sapphire Rapids on) or
     AVX512_BF16 dot products (AMD Zen 4 on, Intel Cooper Lake)? There bfloat16 convolutions
     run faster than float32; elsewhere they are emulated and slower."""
-    probes = ('_is_amx_tile_supported', '_is_avx512_bf16_supported')  # private in torch 2.13
-    return any(bool(getattr(torch.cpu, name, lambda: False)()) for name in probes)
+    return bool({'AMX', 'AVX512_BF16'} & set(cpu_flags()))
 
 
 def _blur(value: int) -> 'str | None':
