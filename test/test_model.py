@@ -16,8 +16,9 @@ from activeloc_ros.errors import ConfigError, FrameError
 from activeloc_ros.perception import model as M
 from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
 
-SMALL = dict(encoder='efficientnet_lite0', encoder_precision='float32', pretrained=False,
-             hidden=32, layers=3, attn_units=16, lr=1e-3, num_threads=0)
+SMALL = dict(encoder='efficientnet_lite0', encoder_precision='float32',
+             predictor_precision='float32', pretrained=False, hidden=32, layers=3,
+             attn_units=16, lr=1e-3, num_threads=0)
 
 
 class TinyEncoder(nn.Module):
@@ -425,6 +426,29 @@ def test_auto_precision_takes_bfloat16_where_the_cpu_computes_it_natively(
     monkeypatch.setattr(torch.cpu, '_is_avx512_bf16_supported', lambda: avx512_bf16)
     assert M.fast_bfloat16() is native
     assert make(encoder_precision='auto').precision == ('bfloat16' if native else 'float32')
+
+
+def test_bfloat16_predictor_changes_only_the_arithmetic():
+    """predictor_precision bfloat16 runs the predictor's products under autocast: the maps
+    and losses stay float32 and close to float32's, the weights and their updates too."""
+    frames = clip(4)
+    runs = {}
+    for precision in ('float32', 'bfloat16'):
+        model = make(predictor_precision=precision, hidden=64)
+        results = [model.step(f) for f in frames]
+        assert all(p.dtype == torch.float32 for p in model.predictor.parameters())
+        assert all(s.dtype == torch.float32 for s in model.state)
+        assert results[-1].updated and results[-1].surprise_map.dtype == np.float32
+        runs[precision] = (results, model)
+    (r32, m32), (r16, m16) = runs['float32'], runs['bfloat16']
+    for a, b in zip(r32[1:], r16[1:]):
+        assert b.losses['total'] == pytest.approx(a.losses['total'], rel=0.05)
+        np.testing.assert_allclose(b.surprise_map, a.surprise_map, rtol=0.05)
+    w32 = torch.cat([p.detach().flatten() for p in m32.predictor.parameters()])
+    w16 = torch.cat([p.detach().flatten() for p in m16.predictor.parameters()])
+    assert 0 < float((w16 - w32).norm() / w32.norm()) < 0.01
+    assert make(predictor_precision='auto').predictor_precision == (
+        'bfloat16' if M.fast_bfloat16() else 'float32')
 
 
 def test_frame_rms_normalises_every_frame():

@@ -90,6 +90,13 @@ def fast_bfloat16() -> bool:
     return bool({'AMX', 'AVX512_BF16'} & set(cpu_flags()))
 
 
+def _resolve(precision: str) -> str:
+    """The precision 'auto' stands for on this CPU."""
+    if precision == 'auto':
+        return 'bfloat16' if fast_bfloat16() else 'float32'
+    return precision
+
+
 def _blur(value: int) -> 'str | None':
     if value == 0 or (value >= 3 and value % 2 == 1):
         return None
@@ -134,6 +141,11 @@ class PerceptionConfig:
     hidden: int = _param(512, 'units of each LSTM (paper 512)', at_least(1))
     layers: int = _param(3, 'stacked LSTMs (paper 3)', at_least(1))
     attn_units: int = _param(512, 'width of the Bahdanau attention score', at_least(1))
+    predictor_precision: str = _param(
+        'auto', 'arithmetic of the predictor\'s matrix products, forward and backward: '
+        'float32, or bfloat16 under autocast (weights, optimiser and losses stay float32); '
+        'auto = bfloat16 where the CPU computes it natively (AMX or AVX512_BF16), else '
+        'float32', one_of(*PRECISIONS))
     attn_rescale: bool = _param(
         True, 'feed N * alpha * f to the LSTM (N cells), so uniform attention passes the '
         'features unchanged; False = alpha * f as the lab code (inputs ~f/196)')
@@ -452,10 +464,12 @@ class SurpriseModel:
         if cfg.fold_bn and not self.train_encoder and _has_batchnorm(self.encoder):
             from activeloc_ros.perception.encoders import fold_batchnorm
             self.frozen_encoder = fold_batchnorm(self.encoder)
-        precision = cfg.encoder_precision
-        if precision == 'auto':
-            precision = 'bfloat16' if fast_bfloat16() else 'float32'
-        self.precision = precision                              # the one in use
+        precision = _resolve(cfg.encoder_precision)
+        if precision == 'int8' and self.train_encoder:
+            raise ConfigError("perception parameter 'encoder_precision' int8 needs a frozen "
+                              'encoder (update_encoder false)')
+        self.precision = precision                              # the encoder's, in use
+        self.predictor_precision = _resolve(cfg.predictor_precision)
         if precision == 'bfloat16' and not self.train_encoder:
             # cast the weights once: autocast would cast them again on every frame
             if self.frozen_encoder is self.encoder:
@@ -630,7 +644,11 @@ class SurpriseModel:
         uniform = torch.full((self.cells,), 1.0 / self.cells)
         target = self.map_prev2 if self.map_prev2 is not None else uniform
         with torch.set_grad_enabled(train):
-            fhat, alpha, new_state = self._predict(f_prev, state)      # (N, C), (N,)
+            with torch.autocast('cpu', dtype=torch.bfloat16,
+                                enabled=self.predictor_precision == 'bfloat16'):
+                fhat, alpha, new_state = self._predict(f_prev, state)  # (N, C), (N,)
+            fhat, alpha = fhat.float(), alpha.float()
+            new_state = (new_state[0].float(), new_state[1].float())
             if change is not None:                                   # (N,) grey levels
                 weight = motion_weight(change, cfg.motion_weighting,
                                        cfg.image_motion_scale)[:, None].expand_as(f_cur)
