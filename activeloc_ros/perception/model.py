@@ -69,6 +69,7 @@ from activeloc_ros.perception import egomotion, motion
 ENCODER_NAMES = ('vgg16', 'vgg19', 'efficientnet_lite0', 'resnet50')
 MOTIONS = ('abs_sigmoid', 'sigmoid', 'raw', 'none')
 PRECISIONS = ('auto', 'float32', 'bfloat16')
+ENCODER_PRECISIONS = PRECISIONS + ('int8',)
 
 
 # torch's probes of the instruction sets that decide the encoder's speed (private in 2.13)
@@ -119,10 +120,11 @@ class PerceptionConfig:
         '(bench screen, static sequences: AAE 16.0 deg vs vgg19\'s 13.3)', one_of(*ENCODER_NAMES))
     weights: str = _param('', 'encoder weights file; empty = the package weight cache')
     encoder_precision: str = _param(
-        'auto', 'arithmetic of the encoder\'s forward pass: float32, or bfloat16 (features '
+        'auto', 'arithmetic of the encoder\'s forward pass: float32; bfloat16 (features '
         'within ~1% of float32; faster where the CPU computes it natively, slower where it is '
-        'emulated); auto = bfloat16 where the CPU has AMX or AVX512_BF16, else float32',
-        one_of(*PRECISIONS))
+        'emulated); int8 (OpenVINO, quantised once by NNCF on the sample bag, see '
+        'perception.int8; a frozen encoder only); auto = bfloat16 where the CPU has AMX or '
+        'AVX512_BF16, else float32', one_of(*ENCODER_PRECISIONS))
     encoder_pad: int = _param(
         32, 'pixels of mirrored picture added round the encoder input, whose extra feature '
         'cells are cut off again: the border cells then see picture, not the zero padding '
@@ -487,6 +489,13 @@ class SurpriseModel:
             raise ConfigError(f"perception parameter 'encoder_pad' must be a multiple of the "
                               f'encoder stride {stride} below {self.size}, got '
                               f'{cfg.encoder_pad}')
+        if precision == 'int8':
+            from activeloc_ros.perception import int8, weights
+            side = self.size + 2 * cfg.encoder_pad
+            self.frozen_encoder = int8.load(
+                self.frozen_encoder, name=cfg.encoder, input_shape=(1, 3, side, side),
+                prepare=lambda rgb: self._padded(self._tensor(self._resize(rgb))),
+                threads=torch.get_num_threads(), cache=weights.cache_dir())
         self.predictor = Predictor(cfg, self.channels)
         self._predict = torch.compile(self.predictor) if cfg.compile else self.predictor
         groups = [{'params': list(self.predictor.parameters()), 'scale': 1.0}]
@@ -574,15 +583,16 @@ class SurpriseModel:
         return self._to_cells(self._forward(encoder, x))
 
     def _forward(self, encoder: nn.Module, x: torch.Tensor) -> torch.Tensor:
-        pad = self.cfg.encoder_pad
-        if not pad:
-            return self._run(encoder, x)
-        crop = pad * self.grid // self.size                     # cells the padding adds
-        f = self._run(encoder, F.pad(x, (pad,) * 4, mode='reflect'))
+        crop = self.cfg.encoder_pad * self.grid // self.size   # cells the padding adds
+        f = self._run(encoder, self._padded(x))
         return f[..., crop:f.shape[-2] - crop, crop:f.shape[-1] - crop]
 
+    def _padded(self, x: torch.Tensor) -> torch.Tensor:
+        pad = self.cfg.encoder_pad
+        return F.pad(x, (pad,) * 4, mode='reflect') if pad else x
+
     def _run(self, encoder: nn.Module, x: torch.Tensor) -> torch.Tensor:
-        if self.precision == 'float32':
+        if self.precision in ('float32', 'int8'):
             return encoder(x)
         if encoder is self.frozen_encoder and not self.train_encoder:  # bfloat16 weights
             return encoder(x.to(torch.bfloat16)).float()

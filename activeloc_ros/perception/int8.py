@@ -1,0 +1,147 @@
+"""The frozen encoder in int8 (`encoder_precision: int8`): OpenVINO runs it, after NNCF's
+post-training quantisation calibrated it once on frames of the bundled sample bag.
+
+The quantised model is built the first time it is asked for (about a minute on 2 cores) and
+kept in the weight cache beside the float weights, under a name that digests everything it
+depends on: the encoder's weights, its input size, the calibration frames and the OpenVINO
+and NNCF versions. `python -m activeloc_ros.perception.weights fetch` builds it for the
+default encoder, so the first run of the graph does not wait.
+
+Calibration frames come from `bags/vtest` (OpenCV's pedestrian video, the graph's default
+source) and not from the dev sequences: every installation has it, and the tolerance that
+matters is on pictures the calibration never saw. `bench perception --int8-check` measures
+it on the dev sequences.
+"""
+import hashlib
+import os
+from pathlib import Path
+import shutil
+import sys
+import tempfile
+from typing import Callable, Iterator, TextIO
+
+import numpy as np
+import torch
+from torch import nn
+
+from activeloc_ros.errors import ConfigError, WeightsError
+
+CALIBRATION_FRAMES = 128
+NEEDS = 'pip install openvino nncf (setup.py installs both)'
+
+
+def available() -> bool:
+    """Can this installation build and run an int8 encoder?"""
+    try:
+        import nncf  # noqa: F401
+        import openvino  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+class Int8Encoder(nn.Module):
+    """A compiled OpenVINO model behind the encoder's interface: (1, 3, S, S) float ->
+    (1, C, g, g) float. Frozen: it has no parameters and no gradient."""
+
+    def __init__(self, compiled, input_shape: tuple[int, ...]):
+        super().__init__()
+        self.compiled = compiled
+        self.request = compiled.create_infer_request()
+        self.input_shape = tuple(input_shape)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if tuple(x.shape) != self.input_shape:
+            raise ConfigError(f'the int8 encoder was built for inputs {self.input_shape}, '
+                              f'got {tuple(x.shape)}')
+        self.request.infer([np.ascontiguousarray(x.detach().float().numpy())])
+        return torch.from_numpy(self.request.get_output_tensor(0).data.copy())
+
+
+def calibration_frames(count: int | None = None) -> Iterator[np.ndarray]:
+    """`count` (default `CALIBRATION_FRAMES`) RGB frames spread evenly over the bundled
+    sample bag."""
+    from activeloc_ros.sources import BagSource, default_bag
+    count = count or CALIBRATION_FRAMES
+    source = BagSource(default_bag())
+    try:
+        step = max(1, source.topic.count // count)
+        taken = 0
+        while taken < count:
+            frame = source.read()
+            if frame is None:
+                break
+            if frame.index % step == 0:
+                taken += 1
+                yield frame.rgb
+    finally:
+        source.close()
+
+
+def cache_key(encoder: nn.Module, input_shape: tuple[int, ...]) -> str:
+    """A digest of everything the quantised model depends on."""
+    import nncf
+    import openvino
+    from activeloc_ros.paths import file_sha256
+    from activeloc_ros.perception.weights import state_digest
+    from activeloc_ros.sources import default_bag
+    bag = sorted(default_bag().glob('*.mcap'))
+    parts = [state_digest(encoder.state_dict()), str(tuple(input_shape)),
+             *(file_sha256(p) for p in bag), str(CALIBRATION_FRAMES),
+             openvino.__version__, nncf.__version__]
+    return hashlib.sha256('|'.join(parts).encode()).hexdigest()[:16]
+
+
+def load(encoder: nn.Module, *, name: str, input_shape: tuple[int, ...],
+         prepare: Callable[[np.ndarray], torch.Tensor], threads: int,
+         cache: Path, stream: TextIO | None = None) -> Int8Encoder:
+    """The int8 version of the float32 `encoder`, built and cached on first use.
+
+    :param prepare: turns a calibration RGB frame into the encoder's input, exactly as the
+        model prepares its frames (resize, normalise, mirrored border).
+    :raises WeightsError: OpenVINO or NNCF is missing, or the build failed.
+    """
+    if not available():
+        raise WeightsError(f'encoder_precision int8 needs OpenVINO and NNCF: {NEEDS}')
+    import openvino
+    path = Path(cache) / 'int8' / f'{name}-{cache_key(encoder, input_shape)}.xml'
+    if not path.is_file():
+        build(encoder, path, input_shape=input_shape, prepare=prepare, stream=stream)
+    core = openvino.Core()
+    config = {'INFERENCE_NUM_THREADS': max(1, threads), 'PERFORMANCE_HINT': 'LATENCY'}
+    try:
+        compiled = core.compile_model(core.read_model(path), 'CPU', config)
+    except RuntimeError as exc:
+        raise WeightsError(f'cannot load the int8 encoder {path} ({exc}); delete it and it '
+                           f'is built again') from exc
+    return Int8Encoder(compiled, input_shape)
+
+
+def build(encoder: nn.Module, path: Path, *, input_shape: tuple[int, ...],
+          prepare: Callable[[np.ndarray], torch.Tensor], stream: TextIO | None = None) -> Path:
+    """Quantise `encoder` on the calibration frames and save it as OpenVINO IR at `path`
+    (written into a temporary folder, then moved: never half a model)."""
+    import nncf
+    import openvino
+    out = stream or sys.stderr
+    print(f'building the int8 encoder {path.name} (once; about a minute) ...', file=out,
+          flush=True)
+    inputs = [prepare(rgb).contiguous().numpy() for rgb in calibration_frames()]
+    if not inputs:
+        raise WeightsError('the sample bag gave no calibration frames')
+    if any(x.shape != tuple(input_shape) for x in inputs):
+        raise ConfigError(f'calibration inputs must have the shape {tuple(input_shape)}')
+    with torch.no_grad():
+        model = openvino.convert_model(encoder.eval(), example_input=torch.from_numpy(inputs[0]))
+    quantised = nncf.quantize(model, nncf.Dataset(inputs), subset_size=len(inputs))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix='.build-'))
+    try:
+        openvino.save_model(quantised, tmp / path.name)
+        os.replace(tmp / path.with_suffix('.bin').name, path.with_suffix('.bin'))
+        os.replace(tmp / path.name, path)                   # the .xml last: it marks done
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    print(f'wrote {path}', file=out, flush=True)
+    return path
+

@@ -1,0 +1,89 @@
+"""The int8 encoder (`encoder_precision: int8`): built once from the sample bag's frames,
+cached, close to float32, and a clear error when it cannot be had. A tiny encoder and a
+few calibration frames keep the quantisation fast; nothing here measures time."""
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from activeloc_ros.errors import ConfigError, WeightsError
+from activeloc_ros.perception import int8
+from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
+
+
+SMALL = dict(encoder='efficientnet_lite0', predictor_precision='float32', pretrained=False,
+             hidden=32, layers=3, attn_units=16, encoder_pad=0, num_threads=0)
+
+
+class TinyEncoder(nn.Module):
+    """(B, 3, 64, 64) -> (B, 8, 8, 8), ReLU features as a CNN trunk gives."""
+    input_size = 64
+    channels = 8
+
+    def __init__(self):
+        super().__init__()
+        self.conv1 = nn.Conv2d(3, 16, 3, padding=1)
+        self.conv2 = nn.Conv2d(16, self.channels, 8, stride=8)
+
+    def preprocess(self, x: torch.Tensor) -> torch.Tensor:
+        return x / 127.5 - 1.0
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.relu(self.conv2(torch.relu(self.conv1(x))))
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv('ACTIVELOC_CACHE', str(tmp_path))
+    monkeypatch.setattr(int8, 'CALIBRATION_FRAMES', 16)
+    return tmp_path
+
+
+def make(precision: str, **kw) -> SurpriseModel:
+    torch.manual_seed(0)
+    cfg = PerceptionConfig(**{**SMALL, 'encoder_precision': precision, **kw})
+    return SurpriseModel(cfg, encoder=TinyEncoder())
+
+
+def frames(n: int) -> list[np.ndarray]:
+    return [frame for frame in int8.calibration_frames(n)]
+
+
+def test_int8_features_stay_close_to_float32_and_the_model_is_built_once(cache, capsys):
+    quantised, reference = make('int8'), make('float32')
+    built = sorted((cache / 'int8').glob('*.xml'))
+    assert len(built) == 1 and 'building the int8 encoder' in capsys.readouterr().err
+    gaps = []
+    for frame in frames(40)[20:]:          # pictures the calibration did not see
+        x = reference.preprocess(frame)
+        with torch.inference_mode():
+            f8 = quantised._features(quantised.frozen_encoder, x)
+            f32 = reference._features(reference.frozen_encoder, x)
+        assert f8.dtype == torch.float32 and f8.shape == f32.shape
+        gaps.append(float((f8 - f32).norm() / f32.norm()))
+    assert 0 < max(gaps) < 0.1, gaps
+    results = [quantised.step(frame) for frame in frames(3)]
+    assert results[-1].updated and np.isfinite(results[-1].surprise_map).all()
+    mtime = built[0].stat().st_mtime_ns
+    make('int8')                           # the cached model: no second build
+    assert 'building' not in capsys.readouterr().err
+    assert built[0].stat().st_mtime_ns == mtime
+
+
+def test_int8_needs_a_frozen_encoder(cache):
+    with pytest.raises(ConfigError, match='frozen encoder'):
+        make('int8', update_encoder=True)
+
+
+def test_a_damaged_int8_model_is_a_clear_error(cache):
+    make('int8')
+    xml, = (cache / 'int8').glob('*.xml')
+    xml.write_text('<net')
+    with pytest.raises(WeightsError, match='delete it'):
+        make('int8')
+
+
+def test_int8_without_openvino_says_what_to_install(cache, monkeypatch):
+    monkeypatch.setattr(int8, 'available', lambda: False)
+    with pytest.raises(WeightsError, match='pip install openvino nncf'):
+        make('int8')
