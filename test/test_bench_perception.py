@@ -1,4 +1,5 @@
-"""`bench perception` names the CPU and the precision of every row it times."""
+"""`bench perception` names the CPU, the precisions and the update share of every row it
+times, and marks the shipped default."""
 import json
 
 import pytest
@@ -13,6 +14,9 @@ def test_every_row_names_its_cpu_flags_and_precision(capsys):
     assert bench.main(argv + ['--set', 'encoder_precision=float32', '--json']) == 0
     row, = json.loads(capsys.readouterr().out)
     assert row['precision'] == 'float32' and row['frames'] == 3
+    assert row['predictor_precision'] in ('float32', 'bfloat16')
+    assert row['update_share'] == 1.0           # one update per frame after the warm-up
+    assert row['default'] is False              # random weights and a --set
     cpu = row['cpu']
     assert cpu['model'] and cpu['cores'] >= 1
     assert ('AVX512_BF16' in cpu['flags']) == torch.cpu._is_avx512_bf16_supported()
@@ -21,7 +25,7 @@ def test_every_row_names_its_cpu_flags_and_precision(capsys):
     assert bench.main(argv) == 0
     out = capsys.readouterr().out
     assert f'CPU: {cpu["model"]}' in out
-    assert 'precision' in out.splitlines()[2]
+    assert 'enc/pred' in out.splitlines()[2]
 
 
 def test_the_cpu_line_says_what_is_missing():
@@ -32,8 +36,8 @@ def test_the_cpu_line_says_what_is_missing():
 def test_floor_counts_each_stage_and_divides_by_a_measured_peak(capsys):
     argv = ['--encoder', 'efficientnet_lite0', '--random-weights', '--frames', '3',
             '--warmup', '1', '--update-encoder', 'no', '--size', '96x64', '--threads', '1',
-            '--set', 'encoder_precision=float32', '--set', 'hidden=64', '--floor',
-            '--json']
+            '--set', 'encoder_precision=float32', '--set', 'predictor_precision=float32',
+            '--set', 'hidden=64', '--floor', '--json']
     assert bench.main(argv) == 0
     floor = json.loads(capsys.readouterr().out)[0]['floor']
     assert set(floor['peak_gflops']) == {'float32'} and floor['peak_gflops']['float32'] > 0
@@ -45,3 +49,12 @@ def test_floor_counts_each_stage_and_divides_by_a_measured_peak(capsys):
         assert v['ratio'] == pytest.approx(v['measured_ms'] / v['floor_ms'])
     # a backward pass costs about twice its forward
     assert 1.0 < stages['update']['gflop'] / stages['predict']['gflop'] < 3.0
+
+
+
+@pytest.mark.parametrize('config, default', [
+    ({'num_threads': 2}, True), ({'hidden': 512, 'num_threads': 1}, True),
+    ({'hidden': 64}, False), ({'pretrained': False}, False),
+    ({'update_encoder': True}, False)])
+def test_only_the_shipped_configuration_is_the_default_row(config, default):
+    assert bench.is_default(config) is default

@@ -31,6 +31,7 @@ from activeloc_ros.errors import ActivelocError, ConfigError, SourceError
 
 STAGES = ('preprocess', 'encode', 'predict', 'update')
 SHORT = {'preprocess': 'prep', 'encode': 'enc', 'predict': 'pred', 'update': 'upd'}
+SHORT_PRECISION = {'float32': 'f32', 'bfloat16': 'bf16', 'int8': 'int8'}
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -149,6 +150,14 @@ def matmul_peak_gflops(dtype_name: str, *, n: int = 2048, seconds: float = 1.0) 
     return 2 * n ** 3 / best / 1e9
 
 
+def is_default(config: dict[str, Any]) -> bool:
+    """Is this the shipped configuration, the thread count aside?"""
+    from activeloc_ros.perception.model import PerceptionConfig
+    mine = PerceptionConfig.from_dict(config).to_dict()
+    return all(mine[k] == v for k, v in PerceptionConfig().to_dict().items()
+               if k != 'num_threads')
+
+
 def stage_gflop(model, frame: np.ndarray) -> dict[str, float]:
     """GFLOP of one frame's encode, predict (forward) and update (the extra backward) on a
     model that has seen at least two frames."""
@@ -162,9 +171,9 @@ def stage_gflop(model, frame: np.ndarray) -> dict[str, float]:
 
     x = model.preprocess(frame)
 
-    def encode():
+    def encode():            # the float encoder: the same arithmetic in every precision
         with torch.inference_mode():
-            model._features(model.frozen_encoder, x)
+            model.encoder(model._padded(x))
 
     def predict():
         with torch.no_grad():
@@ -182,11 +191,14 @@ def stage_gflop(model, frame: np.ndarray) -> dict[str, float]:
 def floors(model, frame: np.ndarray, stage_ms: dict[str, float]) -> dict[str, Any]:
     """Each stage's floor (its GFLOP at the measured matmul peak of its precision)."""
     gflop = stage_gflop(model, frame)
-    peaks = {p: matmul_peak_gflops(p) for p in sorted({'float32', model.precision})}
+    precisions = {stage: model.precision if stage == 'encode' else model.predictor_precision
+                  for stage in gflop}
+    # torch has no int8 matmul to measure a peak with: an int8 stage gets no floor
+    peaks = {p: matmul_peak_gflops(p) for p in sorted(set(precisions.values()) - {'int8'})}
     out = {'peak_gflops': peaks, 'stages': {}}
     for stage, work in gflop.items():
-        precision = model.precision if stage == 'encode' else 'float32'
-        floor_ms = work / peaks[precision] * 1e3
+        precision = precisions[stage]
+        floor_ms = work / peaks[precision] * 1e3 if precision in peaks else math.nan
         out['stages'][stage] = {'gflop': work, 'precision': precision, 'floor_ms': floor_ms,
                                 'measured_ms': stage_ms[stage],
                                 'ratio': stage_ms[stage] / floor_ms if floor_ms else math.nan}
@@ -234,10 +246,12 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
     rss = np.zeros(n)
     label = f"{cfg.encoder} update_encoder={'yes' if cfg.update_encoder else 'no'}"
     progress = Progress(n, label)
+    updates = 0
     for i in range(n):
         frame = next(source)
         t0 = time.perf_counter()
         res = model.step(frame)
+        updates += res.updated and i >= warmup
         total[i] = time.perf_counter() - t0
         stages[i] = [res.timings[k] for k in STAGES]
         rss[i] = rss_mb()
@@ -252,12 +266,14 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
     stage_ms = {k: float(np.median(stages[warmup:, j]) * 1e3) for j, k in enumerate(STAGES)}
     row = {
         'encoder': cfg.encoder, 'update_encoder': cfg.update_encoder,
-        'precision': model.precision, 'cpu': cpu_info(),
+        'precision': model.precision, 'predictor_precision': model.predictor_precision,
+        'cpu': cpu_info(), 'default': job['default'],
         'frames': n, 'warmup': warmup, 'threads': job['threads'],
         'p50_ms': float(np.percentile(lat, 50) * 1e3),
         'p95_ms': float(np.percentile(lat, 95) * 1e3),
         'fps': float(len(lat) / lat.sum()),
         'stage_p50_ms': stage_ms,
+        'update_share': updates / len(lat),
         'peak_rss_mb': peak_rss_mb(),
         'rss_base_frame': int(base),
         'rss_base_mb': float(rss[base]),
@@ -272,17 +288,19 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
 
 
 def table(rows: list[dict[str, Any]]) -> str:
-    head = (f'{"encoder":<19}{"upd.enc":>8}{"precision":>10}{"frames":>7}{"p50 ms":>8}'
-            f'{"p95 ms":>8}{"fps":>7}{"peakRSS MB":>11}{"RSS growth MB":>14}  p50 ms: '
-            f'{" / ".join(SHORT[s] for s in STAGES)}')
+    head = (f'{"encoder":<19}{"upd.enc":>8}{"enc/pred":>10}{"frames":>7}{"p50 ms":>8}'
+            f'{"p95 ms":>8}{"fps":>7}{"upd %":>6}{"peakRSS MB":>11}{"RSS growth MB":>14}'
+            f'  p50 ms: {" / ".join(SHORT[s] for s in STAGES)}')
     lines = [head, '-' * len(head)]
     for r in rows:
         s = r['stage_p50_ms']
+        precision = '/'.join(SHORT_PRECISION[r[k]] for k in ('precision', 'predictor_precision'))
         lines.append(
             f'{r["encoder"]:<19}{"yes" if r["update_encoder"] else "no":>8}'
-            f'{r["precision"]:>10}{r["frames"]:>7}'
-            f'{r["p50_ms"]:>8.1f}{r["p95_ms"]:>8.1f}{r["fps"]:>7.1f}{r["peak_rss_mb"]:>11.0f}'
-            f'{r["rss_growth_mb"]:>+14.1f}  ' + ' / '.join(f'{s[k]:.1f}' for k in STAGES))
+            f'{precision:>10}{r["frames"]:>7}{r["p50_ms"]:>8.1f}{r["p95_ms"]:>8.1f}'
+            f'{r["fps"]:>7.1f}{100 * r["update_share"]:>6.0f}{r["peak_rss_mb"]:>11.0f}'
+            f'{r["rss_growth_mb"]:>+14.1f}  ' + ' / '.join(f'{s[k]:.1f}' for k in STAGES)
+            + ('  (default)' if r['default'] else ''))
     return '\n'.join(lines)
 
 
@@ -312,7 +330,8 @@ def main(argv: list[str]) -> int:
             except ConfigError as err:
                 print(f'error: {err}', file=sys.stderr)
                 return 2
-            jobs.append({'config': config, 'frames': args.frames, 'warmup': args.warmup,
+            jobs.append({'config': config, 'default': is_default(config),
+                         'frames': args.frames, 'warmup': args.warmup,
                          'video': args.video, 'size': size, 'threads': args.threads,
                          'floor': args.floor})
     rows, failed = [], 0
