@@ -311,6 +311,19 @@ def _field_names(cls) -> set[str]:
 
 
 @dataclass
+class Observation:
+    """What `SurpriseModel.observe` made of one frame, for `learn`."""
+    frame: np.ndarray                  # (H, W, 3) as given
+    index: int
+    t0: float                          # perf_counter at the start of `observe`
+    timings: dict[str, float]
+    f_cur: torch.Tensor | None = None  # (N, C) features; None: the frame was not finite
+    warp: np.ndarray | None = None     # the camera's motion since the previous frame
+    f_prev: torch.Tensor | None = None  # (N, C) the previous view encoded again, if it was
+    change: torch.Tensor | None = None  # (N,) picture change (motion_source: image)
+
+
+@dataclass
 class PerceptionResult:
     """What one `SurpriseModel.step` returns."""
     surprise_map: np.ndarray           # (g, g) float32, >= 0, sums to 1
@@ -516,14 +529,22 @@ class SurpriseModel:
     # -- state -------------------------------------------------------------------------------
     def reset(self) -> None:
         """Forget the recurrent state, the previous frame and the previous maps."""
-        self.state = None          # (h, c) after the last frame fed to the predictor
+        self._forget_view()
+        self._forget_sequence()
+
+    def _forget_view(self) -> None:
+        """`observe`'s memory of the previous frame."""
         self.x_prev = None         # (1, 3, S, S) normalised previous frame
-        self.f_prev = None         # (N, C) its features
-        self.map_prev = None       # (N,) surprise map of frame t-1
-        self.map_prev2 = None      # (N,) and of frame t-2
         self.img_prev = None       # (S, S, 3) previous resized image (ego_motion)
         self.keys_prev = None      # its ORB keypoints and descriptors (ego_motion)
         self.grey_prev = None      # (S, S) its blurred grey picture (motion_source image)
+
+    def _forget_sequence(self) -> None:
+        """`learn`'s memory: the predictor's state, the previous features and maps."""
+        self.state = None          # (h, c) after the last frame fed to the predictor
+        self.f_prev = None         # (N, C) the previous frame's features
+        self.map_prev = None       # (N,) surprise map of frame t-1
+        self.map_prev2 = None      # (N,) and of frame t-2
 
     def _params(self) -> list[torch.Tensor]:
         return [p for g in self.optimizer.param_groups for p in g['params']]
@@ -547,7 +568,7 @@ class SurpriseModel:
             self.optimizer.load_state_dict(_clone_tree(self._snapshot['optimizer']))
             if self.train_encoder:
                 self.encoder.load_state_dict(self._snapshot['encoder'])
-        self.reset()
+        self._forget_sequence()
 
     # -- one frame ---------------------------------------------------------------------------
     def preprocess(self, frame: np.ndarray) -> torch.Tensor | None:
@@ -606,49 +627,71 @@ class SurpriseModel:
         return f
 
     def _encode(self, x: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor]:
-        """Features (N, C) of the previous and the current frame, with grad where needed."""
+        """Features (N, C) of the current frame and, where the encoder learns through both
+        (`encoder_grad: both`), of the previous one again with the current weights."""
         if not (self.train_encoder and self.x_prev is not None):
             with torch.inference_mode():
                 f_cur = self._features(self.frozen_encoder, x)[0]
-            return self.f_prev, f_cur.clone()                   # a normal tensor again
+            return None, f_cur.clone()                          # a normal tensor again
         with torch.enable_grad():
             if self.cfg.encoder_grad == 'both':                 # re-encode with current weights
                 feats = self._features(self.encoder, torch.cat([self.x_prev, x]))  # (2, N, C)
                 return feats[0], feats[1]
-            return self.f_prev, self._features(self.encoder, x)[0]
+            return None, self._features(self.encoder, x)[0]
 
     def step(self, frame: np.ndarray) -> PerceptionResult:
         """Encode a frame, score the prediction made for it, update online, predict on."""
+        return self.learn(self.observe(frame))
+
+    def observe(self, frame: np.ndarray) -> Observation:
+        """The first half of `step`: the frame's encoder input, its features and the
+        camera's motion since the frame before. It reads and writes only its own memory of
+        the previous frame, so it may run on the next frame while `learn` runs on this one:
+        `learn(observe(f))` for each frame in turn gives the same results in either order."""
         cfg = self.cfg
         t0 = time.perf_counter()
         timings = dict.fromkeys(('preprocess', 'encode', 'predict', 'update'), 0.0)
-        img = self._resize(frame)
-        x = None if img is None else self._tensor(img)
-        index = self.frame_index
+        img = self._resize(frame)                   # a malformed frame raises: not counted
+        obs = Observation(frame, self.frame_index, t0, timings)
         self.frame_index += 1
-        done = dict(frame=frame, index=index, timings=timings, t0=t0)
-        if x is None:
+        if img is None:                            # not finite: the next frame starts anew
+            self._forget_view()
             timings['preprocess'] = time.perf_counter() - t0
-            self._nonfinite()
-            return self._result(None, **done)
-        warp = None
+            return obs
+        x = self._tensor(img)
         if self.ego is not None:      # timed as preprocessing, re-encoding included
-            warp = self._follow_camera(img)
-        change = self._image_change(img, warp) if cfg.motion_source == 'image' else None
+            obs.warp, obs.f_prev = self._follow_camera(img)
+        if cfg.motion_source == 'image':
+            obs.change = self._image_change(img, obs.warp)
         t1 = time.perf_counter()
         timings['preprocess'] = t1 - t0
-        f_prev, f_cur = self._encode(x)
-        if warp is not None and cfg.ego_warp == 'features' and f_prev is not None:
-            f_prev = self._warp_features(f_prev, f_cur.detach(), warp)
-        t2 = time.perf_counter()
-        timings['encode'] = t2 - t1
-        if not _finite([f_cur]):
+        f_again, obs.f_cur = self._encode(x)
+        if f_again is not None:
+            obs.f_prev = f_again
+        self.x_prev = x
+        timings['encode'] = time.perf_counter() - t1
+        return obs
+
+    def learn(self, obs: Observation) -> PerceptionResult:
+        """The second half of `step`: score the prediction made for the observed frame,
+        update online, and remember what the next prediction needs."""
+        cfg = self.cfg
+        timings = obs.timings
+        done = dict(frame=obs.frame, index=obs.index, timings=timings, t0=obs.t0)
+        if obs.f_cur is None or not _finite([obs.f_cur]):
             self._nonfinite()
             return self._result(None, **done)
+        t2 = time.perf_counter()
+        f_cur, f_prev = obs.f_cur, self.f_prev
         if f_prev is None:                                      # first frame: nothing to score
-            self._remember(x, f_cur, None)
+            self._remember(f_cur, None)
             return self._result(None, **done)
-
+        if obs.f_prev is not None:                              # the previous view encoded again
+            f_prev = obs.f_prev
+        if obs.warp is not None:
+            self._move_memory(obs.warp)
+            if cfg.ego_warp == 'features':
+                f_prev = self._warp_features(f_prev, f_cur.detach(), obs.warp)
         train = cfg.learn
         state = self.state or self.predictor.initial_state(self.cells)
         uniform = torch.full((self.cells,), 1.0 / self.cells)
@@ -659,8 +702,8 @@ class SurpriseModel:
                 fhat, alpha, new_state = self._predict(f_prev, state)  # (N, C), (N,)
             fhat, alpha = fhat.float(), alpha.float()
             new_state = (new_state[0].float(), new_state[1].float())
-            if change is not None:                                   # (N,) grey levels
-                weight = motion_weight(change, cfg.motion_weighting,
+            if obs.change is not None:                               # (N,) grey levels
+                weight = motion_weight(obs.change, cfg.motion_weighting,
                                        cfg.image_motion_scale)[:, None].expand_as(f_cur)
             else:
                 weight = motion_weight((f_cur - f_prev).detach(), cfg.motion_weighting,
@@ -681,32 +724,34 @@ class SurpriseModel:
         if not ok:
             self._nonfinite()
             return self._result(e if _finite([e]) else None, **done)
-        self._remember(x, f_cur, (new_state[0].detach(), new_state[1].detach()))
+        self._remember(f_cur, (new_state[0].detach(), new_state[1].detach()))
         losses = None
         if train:
             losses = {k: float(v.detach()) for k, v in
                       (('global', l_global), ('attn', l_attn), ('total', total))}
         return self._result(e, losses=losses, lr=lr, **done)
 
-    def _follow_camera(self, img: np.ndarray) -> np.ndarray | None:
-        """Move what the model holds of the previous view into this one (`ego_motion`);
-        the camera's warp, or None if it did not move. With `ego_warp: features` the
-        previous features are left for `step` to warp, next to the new frame's."""
+    def _follow_camera(self, img: np.ndarray) -> tuple[np.ndarray | None, torch.Tensor | None]:
+        """The camera's warp from the previous frame to this one (None if it did not move),
+        and with `ego_warp: image` the previous view warped into this one and encoded again
+        (None otherwise: `learn` warps the previous features cell by cell)."""
         gray = img if img.dtype == np.uint8 else np.clip(img, 0, 255).astype(np.uint8)
         keys = self.ego.keypoints(cv2.cvtColor(gray, cv2.COLOR_RGB2GRAY))
         prev_keys, self.keys_prev = self.keys_prev, keys
-        warp = None
-        if prev_keys is not None and self.f_prev is not None:
-            warp = self.ego.estimate(prev_keys, keys, self.size)
-        if warp is None:
-            self.img_prev = img
-            return None
-        if self.cfg.ego_warp == 'image':
-            self.x_prev = self._tensor(egomotion.warp_image(self.img_prev, warp, img))
-            if not (self.train_encoder and self.cfg.encoder_grad == 'both'):  # else _encode
-                with torch.no_grad():
-                    self.f_prev = self._features(self.frozen_encoder, self.x_prev)[0]
-        self.img_prev = img
+        img_prev, self.img_prev = self.img_prev, img
+        if prev_keys is None or img_prev is None:
+            return None, None
+        warp = self.ego.estimate(prev_keys, keys, self.size)
+        if warp is None or self.cfg.ego_warp != 'image':
+            return warp, None
+        self.x_prev = self._tensor(egomotion.warp_image(img_prev, warp, img))
+        if self.train_encoder and self.cfg.encoder_grad == 'both':   # `_encode` does it
+            return warp, None
+        with torch.no_grad():
+            return warp, self._features(self.frozen_encoder, self.x_prev)[0]
+
+    def _move_memory(self, warp: np.ndarray) -> None:
+        """Move the predictor's state and the past maps into the new view."""
         g = self.grid
         if self.state is not None:
             self.state = tuple(egomotion.warp_cells(s, warp, self.size, g) for s in self.state)
@@ -716,7 +761,6 @@ class SurpriseModel:
                 m = egomotion.warp_cells(m[None], warp, self.size, g)[0]
                 total = float(m.sum())
                 setattr(self, name, m / total if total > 0 else None)
-        return warp
 
     def _image_change(self, img: np.ndarray, warp: np.ndarray | None) -> torch.Tensor | None:
         """(N,) per-cell change of the picture since the previous frame, the camera's own
@@ -765,9 +809,8 @@ class SurpriseModel:
             self._take_snapshot()
         return lr
 
-    def _remember(self, x: torch.Tensor, f_cur: torch.Tensor,
+    def _remember(self, f_cur: torch.Tensor,
                   state: tuple[torch.Tensor, torch.Tensor] | None) -> None:
-        self.x_prev = x
         self.f_prev = f_cur.detach()
         self.state = state
 
