@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 import math
 import random
 import time
-from typing import Any
+from typing import Any, Callable
 
 import cv2
 import numpy as np
@@ -69,6 +69,7 @@ from activeloc_ros.perception import egomotion, motion
 ENCODER_NAMES = ('vgg16', 'vgg19', 'efficientnet_lite0', 'resnet50')
 MOTIONS = ('abs_sigmoid', 'sigmoid', 'raw', 'none')
 PRECISIONS = ('auto', 'float32', 'bfloat16')
+_NO_LOSSES = {'global': 0.0, 'attn': 0.0, 'total': 0.0}
 ENCODER_PRECISIONS = PRECISIONS + ('int8',)
 
 
@@ -672,20 +673,31 @@ class SurpriseModel:
         timings['encode'] = time.perf_counter() - t1
         return obs
 
-    def learn(self, obs: Observation) -> PerceptionResult:
+    def learn(self, obs: Observation, *,
+              on_map: Callable[[PerceptionResult], None] | None = None) -> PerceptionResult:
         """The second half of `step`: score the prediction made for the observed frame,
-        update online, and remember what the next prediction needs."""
+        update online, and remember what the next prediction needs.
+
+        :param on_map: called once with the frame's result as soon as its map exists:
+            before the optimiser step (which the map does not need), so a caller can publish
+            it early. The result returned at the end also carries the step's outcome.
+        """
+        def handed(result: PerceptionResult) -> PerceptionResult:
+            if on_map is not None:
+                on_map(result)
+            return result
+
         cfg = self.cfg
         timings = obs.timings
         done = dict(frame=obs.frame, index=obs.index, timings=timings, t0=obs.t0)
         if obs.f_cur is None or not _finite([obs.f_cur]):
             self._nonfinite()
-            return self._result(None, **done)
+            return handed(self._result(None, **done))
         t2 = time.perf_counter()
         f_cur, f_prev = obs.f_cur, self.f_prev
         if f_prev is None:                                      # first frame: nothing to score
             self._remember(f_cur, None)
-            return self._result(None, **done)
+            return handed(self._result(None, **done))
         if obs.f_prev is not None:                              # the previous view encoded again
             f_prev = obs.f_prev
         if obs.warp is not None:
@@ -715,21 +727,25 @@ class SurpriseModel:
         e = e.detach()                                          # (N,)
         t3 = time.perf_counter()
         timings['predict'] = t3 - t2
-        ok = _finite([total, e])
-        lr = 0.0
-        if train and ok:
-            lr = self._update(total)
-            ok = lr is not None
-        timings['update'] = time.perf_counter() - t3
-        if not ok:
+        if not _finite([total, e]):
             self._nonfinite()
-            return self._result(e if _finite([e]) else None, **done)
-        self._remember(f_cur, (new_state[0].detach(), new_state[1].detach()))
+            return handed(self._result(e if _finite([e]) else None, **done))
         losses = None
         if train:
             losses = {k: float(v.detach()) for k, v in
                       (('global', l_global), ('attn', l_attn), ('total', total))}
-        return self._result(e, losses=losses, lr=lr, **done)
+        result = handed(self._result(e, losses=losses, **done))
+        lr = self._update(total) if train else 0.0
+        timings['update'] = time.perf_counter() - t3
+        timings['total'] = time.perf_counter() - obs.t0
+        if lr is None:                                          # the step was not finite
+            probs = self.map_prev
+            self._nonfinite()
+            self.map_prev = probs                               # this frame's map stays
+            return dataclasses.replace(result, losses=dict(_NO_LOSSES), updated=False,
+                                       nan_events=self.nan_events)
+        self._remember(f_cur, (new_state[0].detach(), new_state[1].detach()))
+        return dataclasses.replace(result, lr=lr)
 
     def _follow_camera(self, img: np.ndarray) -> tuple[np.ndarray | None, torch.Tensor | None]:
         """The camera's warp from the previous frame to this one (None if it did not move),
@@ -833,7 +849,7 @@ class SurpriseModel:
             surprise_map=probs.reshape(rows, g).numpy().astype(np.float32),
             cell=(row, col), location_px=(x * w / g, y * h / rows),
             peak=float(probs[flat]),
-            losses=losses or {'global': 0.0, 'attn': 0.0, 'total': 0.0},
+            losses=losses or dict(_NO_LOSSES),
             lr=lr, updated=losses is not None, timings=timings,
             nan_events=self.nan_events, frame_index=index)
 
