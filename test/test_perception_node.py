@@ -73,9 +73,12 @@ def test_a_camera_of_either_reliability_is_heard(rig, qos):
     assert node.sub.qos_profile.reliability == profile.reliability
 
 
-def test_the_map_image_carries_the_frames_header(rig):
+@pytest.mark.parametrize('pipeline', [False, True])
+def test_the_map_image_carries_the_frames_header(rig, pipeline):
+    """Also when the maps are published from the pipeline's learning thread."""
     from sensor_msgs.msg import Image
-    executor, node, probe, heard = rig()
+    executor, node, probe, heard = rig(f'pipeline:={str(pipeline).lower()}')
+    assert (node.pipeline is not None) is pipeline
     publisher = probe.create_publisher(Image, 'camera/image_raw', 10)
     assert feed(executor, publisher, image('optical', 7), lambda: len(heard['maps']) >= 2)
     msg = heard['maps'][-1]
@@ -83,6 +86,9 @@ def test_the_map_image_carries_the_frames_header(rig):
     assert msg.header.frame_id == 'optical' and msg.header.stamp.sec == 7
     values = np.frombuffer(bytes(msg.data), np.float32)
     assert values.shape == (196,) and abs(values.sum() - 1.0) < 1e-3
+    if pipeline:
+        node.destroy_node()                       # the learning thread ends with the node
+        assert not node.pipeline._thread.is_alive()
 
 
 def test_compressed_frames_are_decoded(rig):
