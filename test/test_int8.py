@@ -87,3 +87,8 @@ def test_int8_without_openvino_says_what_to_install(cache, monkeypatch):
     monkeypatch.setattr(int8, 'available', lambda: False)
     with pytest.raises(WeightsError, match='pip install openvino nncf'):
         make('int8')
+
+
+def test_auto_is_int8_for_a_frozen_encoder_only(cache):
+    assert make('auto').precision == 'int8'
+    assert make('auto', update_encoder=True).precision in ('float32', 'bfloat16')

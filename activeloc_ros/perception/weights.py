@@ -447,6 +447,22 @@ def fetch(names: Sequence[str] | None = None, *, cache: str | Path | None = None
     return paths
 
 
+def prepare_default_int8(cache: Path | None, fetched: Sequence[str]) -> None:
+    """Build the default configuration's int8 encoder (`perception.int8`) into the cache
+    now, if its weights were fetched, so the graph's first start does not wait for it."""
+    from activeloc_ros.perception import int8
+    from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
+    if PerceptionConfig.encoder not in fetched:
+        return
+    if not int8.available():
+        print(f'int8 encoder: skipped, {int8.NEEDS}', file=sys.stderr)
+        return
+    if cache is not None:
+        os.environ[CACHE_ENV] = str(cache)
+    model = SurpriseModel(PerceptionConfig(encoder_precision='int8'))
+    print(f'int8 encoder: ready ({model.cfg.encoder})', file=sys.stderr)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog='python -m activeloc_ros.perception.weights',
@@ -460,11 +476,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         p.add_argument('--cache', type=Path, default=None,
                        help=f'cache directory (default: ${CACHE_ENV} or '
                             '~/.cache/activeloc_ros)')
+        if command == 'fetch':
+            p.add_argument('--no-int8', dest='int8', action='store_false',
+                           help='do not build the default int8 encoder now (it is then '
+                                'built at its first use, which takes about a minute)')
     args = parser.parse_args(argv)
     try:
         if args.command == 'fetch':
             for name, path in fetch(args.encoders, cache=args.cache).items():
                 print(f'{name}\t{path}')
+            if args.int8:
+                prepare_default_int8(args.cache, args.encoders)
             return 0
         root = cache_dir(args.cache)
         ok = True
