@@ -11,7 +11,7 @@ from activeloc_ros.perception import int8
 from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
 
 
-SMALL = dict(encoder='efficientnet_lite0', predictor_precision='float32', pretrained=False,
+SMALL = dict(encoder='efficientnet_lite0', predictor_precision='float32', pretrained=True,
              hidden=32, layers=3, attn_units=16, encoder_pad=0, num_threads=0)
 
 
@@ -52,7 +52,9 @@ def frames(n: int) -> list[np.ndarray]:
 def test_int8_features_stay_close_to_float32_and_the_model_is_built_once(cache, capsys):
     quantised, reference = make('int8'), make('float32')
     built = sorted((cache / 'int8').glob('*.xml'))
-    assert len(built) == 1 and 'building the int8 encoder' in capsys.readouterr().err
+    printed = capsys.readouterr()
+    assert len(built) == 1 and 'building the int8 encoder' in printed.err
+    assert printed.out == ''                # progress never lands in a command's stdout
     gaps = []
     for frame in frames(40)[20:]:          # pictures the calibration did not see
         x = reference.preprocess(frame)
@@ -89,6 +91,7 @@ def test_int8_without_openvino_says_what_to_install(cache, monkeypatch):
         make('int8')
 
 
-def test_auto_is_int8_for_a_frozen_encoder_only(cache):
+def test_auto_is_int8_for_a_frozen_imagenet_encoder_only(cache):
     assert make('auto').precision == 'int8'
     assert make('auto', update_encoder=True).precision in ('float32', 'bfloat16')
+    assert make('auto', pretrained=False).precision in ('float32', 'bfloat16')

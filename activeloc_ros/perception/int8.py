@@ -12,6 +12,7 @@ source) and not from the dev sequences: every installation has it, and the toler
 matters is on pictures the calibration never saw. `bench perception --int8-check` measures
 it on the dev sequences.
 """
+import contextlib
 import hashlib
 import os
 from pathlib import Path
@@ -133,7 +134,8 @@ def build(encoder: nn.Module, path: Path, *, input_shape: tuple[int, ...],
         raise ConfigError(f'calibration inputs must have the shape {tuple(input_shape)}')
     with torch.no_grad():
         model = openvino.convert_model(encoder.eval(), example_input=torch.from_numpy(inputs[0]))
-    quantised = nncf.quantize(model, nncf.Dataset(inputs), subset_size=len(inputs))
+    with contextlib.redirect_stdout(out):   # NNCF's progress bars: not in a command's output
+        quantised = nncf.quantize(model, nncf.Dataset(inputs), subset_size=len(inputs))
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix='.build-'))
     try:

@@ -124,10 +124,10 @@ class PerceptionConfig:
         'auto', 'arithmetic of the encoder\'s forward pass: float32; bfloat16 (features '
         'within ~1% of float32; faster where the CPU computes it natively, slower where it is '
         'emulated); int8 (OpenVINO, quantised once by NNCF on the sample bag, see '
-        'perception.int8; a frozen encoder only); auto = int8 for a frozen encoder, else '
-        'bfloat16 where the CPU has AMX or AVX512_BF16, else float32 (bench screen, 5 '
-        'static dev sequences, seeds 0-2: mean AAE 10.23 deg in int8, 10.64 in bfloat16, '
-        '10.25 in float32)', one_of(*ENCODER_PRECISIONS))
+        'perception.int8; a frozen encoder only); auto = int8 for a frozen ImageNet '
+        'encoder, else bfloat16 where the CPU has AMX or AVX512_BF16, else float32 (bench '
+        'screen, 5 static dev sequences, seeds 0-2: mean AAE 10.23 deg in int8, 10.64 in '
+        'bfloat16, 10.25 in float32)', one_of(*ENCODER_PRECISIONS))
     encoder_pad: int = _param(
         32, 'pixels of mirrored picture added round the encoder input, whose extra feature '
         'cells are cut off again: the border cells then see picture, not the zero padding '
@@ -483,8 +483,8 @@ class SurpriseModel:
             from activeloc_ros.perception.encoders import fold_batchnorm
             self.frozen_encoder = fold_batchnorm(self.encoder)
         precision = cfg.encoder_precision
-        if precision == 'auto' and not self.train_encoder:
-            from activeloc_ros.perception import int8
+        if precision == 'auto' and not self.train_encoder and cfg.pretrained:
+            from activeloc_ros.perception import int8   # (random weights: not worth a build)
             precision = 'int8' if int8.available() else 'auto'
         precision = _resolve(precision)
         if precision == 'int8' and self.train_encoder:
