@@ -58,3 +58,8 @@ def test_floor_counts_each_stage_and_divides_by_a_measured_peak(capsys):
     ({'update_encoder': True}, False)])
 def test_only_the_shipped_configuration_is_the_default_row(config, default):
     assert bench.is_default(config) is default
+
+
+@pytest.mark.parametrize('dtype', ['float32', 'int8'])
+def test_the_matmul_peak_is_measured_in_each_precision(dtype):
+    assert bench.matmul_peak_gflops(dtype, n=256, seconds=0.05) > 0

@@ -136,16 +136,22 @@ def describe_cpu(cpu: dict[str, Any]) -> str:
 
 
 def matmul_peak_gflops(dtype_name: str, *, n: int = 2048, seconds: float = 1.0) -> float:
-    """GFLOP/s of an n x n matmul in this dtype on torch's current threads (the best of
-    repeated timings for about `seconds`)."""
+    """GFLOP/s (int8: GOP/s) of an n x n matmul in this dtype on torch's current threads
+    (the best of repeated timings for about `seconds`)."""
     import torch
-    dtype = getattr(torch, dtype_name)
-    a, b = torch.randn(n, n).to(dtype), torch.randn(n, n).to(dtype)
-    a @ b
+    if dtype_name == 'int8':      # int8 x int8 -> int32, as the int8 encoder's convolutions
+        a = torch.randint(-128, 128, (n, n), dtype=torch.int8)
+        b = torch.randint(-128, 128, (n, n), dtype=torch.int8)
+        product = torch._int_mm
+    else:
+        dtype = getattr(torch, dtype_name)
+        a, b = torch.randn(n, n).to(dtype), torch.randn(n, n).to(dtype)
+        product = torch.matmul
+    product(a, b)
     best, start = math.inf, time.perf_counter()
     while time.perf_counter() - start < seconds:
         t0 = time.perf_counter()
-        a @ b
+        product(a, b)
         best = min(best, time.perf_counter() - t0)
     return 2 * n ** 3 / best / 1e9
 
@@ -193,12 +199,11 @@ def floors(model, frame: np.ndarray, stage_ms: dict[str, float]) -> dict[str, An
     gflop = stage_gflop(model, frame)
     precisions = {stage: model.precision if stage == 'encode' else model.predictor_precision
                   for stage in gflop}
-    # torch has no int8 matmul to measure a peak with: an int8 stage gets no floor
-    peaks = {p: matmul_peak_gflops(p) for p in sorted(set(precisions.values()) - {'int8'})}
+    peaks = {p: matmul_peak_gflops(p) for p in sorted(set(precisions.values()))}
     out = {'peak_gflops': peaks, 'stages': {}}
     for stage, work in gflop.items():
         precision = precisions[stage]
-        floor_ms = work / peaks[precision] * 1e3 if precision in peaks else math.nan
+        floor_ms = work / peaks[precision] * 1e3
         out['stages'][stage] = {'gflop': work, 'precision': precision, 'floor_ms': floor_ms,
                                 'measured_ms': stage_ms[stage],
                                 'ratio': stage_ms[stage] / floor_ms if floor_ms else math.nan}
