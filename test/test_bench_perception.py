@@ -63,3 +63,19 @@ def test_only_the_shipped_configuration_is_the_default_row(config, default):
 @pytest.mark.parametrize('dtype', ['float32', 'int8'])
 def test_the_matmul_peak_is_measured_in_each_precision(dtype):
     assert bench.matmul_peak_gflops(dtype, n=256, seconds=0.05) > 0
+
+
+def test_feature_gap_compares_each_precision_with_float32(tmp_path, monkeypatch, capsys):
+    from activeloc_ros.perception import int8
+    from test_passive import make_moving_square
+    monkeypatch.setenv('ACTIVELOC_CACHE', str(tmp_path / 'cache'))
+    monkeypatch.setattr(int8, 'CALIBRATION_FRAMES', 4)
+    make_moving_square(tmp_path / 'data', 'square', n=4)
+    argv = ['--feature-gap', '--data', str(tmp_path / 'data'), '--every', '2', '--threads',
+            '1', '--encoder', 'efficientnet_lite0', '--set', 'pretrained=false', '--json']
+    assert bench.main(argv) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [r['precision'] for r in rows] == ['bfloat16', 'int8']
+    for r in rows:
+        assert r['frames'] == 2 and r['sequences'] == 1
+        assert 0 < r['mean'] <= r['max'] < 0.5

@@ -59,8 +59,18 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument('--floor', action='store_true',
                    help="also each stage's arithmetic floor (GFLOP over a measured matmul "
                         'peak) and the measured/floor ratio')
+    p.add_argument('--feature-gap', action='store_true',
+                   help="instead of timing: how far the encoder's features in bfloat16 and "
+                        'int8 are from float32\'s (relative L2 norm) on frames of the '
+                        'annotated sequences, none of which calibrated the int8 encoder')
+    p.add_argument('--data', help='with --feature-gap: the sequences (default: '
+                                  '$ACTIVELOC_DATA or ../shared/data/sequences)')
+    p.add_argument('--every', type=int, default=10,
+                   help='with --feature-gap: every Nth frame of each sequence (default 10)')
     p.add_argument('--json', action='store_true', help='print the rows as JSON')
     args = p.parse_args(argv)
+    if args.every < 1:
+        p.error('--every must be at least 1')
     if args.frames <= args.warmup:
         p.error('--frames must exceed --warmup')
     return args
@@ -309,9 +319,59 @@ def table(rows: list[dict[str, Any]]) -> str:
     return '\n'.join(lines)
 
 
+def feature_gaps(root: str | None, *, encoder: str, every: int, threads: int,
+                 extra: dict[str, Any]) -> list[dict[str, Any]]:
+    """Per precision, the relative L2 distance of its encoder features from float32's on
+    every `every`-th frame of the sequences under `root`: mean, max and frames."""
+    import torch
+
+    from activeloc_ros import data
+    from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
+    torch.set_num_threads(threads)
+    models = {precision: SurpriseModel(PerceptionConfig.from_dict(
+        {**extra, 'encoder': encoder, 'encoder_precision': precision, 'num_threads': threads}))
+        for precision in ('float32', 'bfloat16', 'int8')}
+    reference = models.pop('float32')
+    sequences, _ = data.load_sequences(data.resolve_data_root(root))
+    if not sequences:
+        raise SourceError('no annotated sequences to compare features on')
+    gaps: dict[str, list[float]] = {precision: [] for precision in models}
+    for seq in sequences:
+        for sample in seq.frames():
+            if sample.index % every:
+                continue
+            x = reference.preprocess(sample.image)
+            with torch.inference_mode():
+                want = reference._features(reference.frozen_encoder, x)
+                for precision, model in models.items():
+                    got = model._features(model.frozen_encoder, x)
+                    gaps[precision].append(float((got - want).norm() / want.norm()))
+    return [{'encoder': encoder, 'precision': precision, 'frames': len(values),
+             'sequences': len(sequences), 'mean': float(np.mean(values)),
+             'max': float(np.max(values))} for precision, values in gaps.items()]
+
+
 def main(argv: list[str]) -> int:
     from activeloc_ros.perception.model import PerceptionConfig
     args = parse_args(argv)
+    if args.feature_gap:
+        try:
+            rows = [row for encoder in args.encoder or [PerceptionConfig.encoder]
+                    for row in feature_gaps(args.data, encoder=encoder, every=args.every,
+                                            threads=args.threads, extra=overrides(args.set))]
+        except (ActivelocError, ValueError, yaml.YAMLError) as err:
+            print(f'error: {err}', file=sys.stderr)
+            return 1
+        if args.json:
+            print(json.dumps(rows, indent=1))
+            return 0
+        print(f'encoder features against float32 (relative L2 norm), CPU: '
+              f'{describe_cpu(cpu_info())}')
+        print(f'{"encoder":<19}{"precision":>10}{"frames":>8}{"mean %":>8}{"max %":>7}')
+        for r in rows:
+            print(f'{r["encoder"]:<19}{r["precision"]:>10}{r["frames"]:>8}'
+                  f'{100 * r["mean"]:>8.2f}{100 * r["max"]:>7.2f}')
+        return 0
     try:
         extra = overrides(args.set)
         size = tuple(int(v) for v in args.size.lower().split('x'))

@@ -9,8 +9,8 @@ default encoder, so the first run of the graph does not wait.
 
 Calibration frames come from `bags/vtest` (OpenCV's pedestrian video, the graph's default
 source) and not from the dev sequences: every installation has it, and the tolerance that
-matters is on pictures the calibration never saw. `bench perception --int8-check` measures
-it on the dev sequences.
+matters is on pictures the calibration never saw. `python -m activeloc_ros.bench perception
+--feature-gap` measures it on the annotated sequences.
 """
 import contextlib
 import hashlib

@@ -35,7 +35,13 @@ motion weight 2*sigmoid(|d|)-1 (the literal sigmoid(d) is 0.5 where nothing move
 ego_motion (bench screen, dev set, mean AAE 19.1 deg with it vs 20.8 without; its
 ego_warp 'features' against 'image' with vgg19: 19.02 vs 19.24 deg at seed 0, 19.18 vs 19.40
 at seed 1, at 422 vs 678 ms a frame), encoder_pad (below) and vgg19 for the paper's vgg16
-(whose weights no registry here holds), in bfloat16 where fast.
+(whose weights no registry here holds), run in int8 (`encoder_precision`), with the
+predictor's products in bfloat16 where the CPU computes it natively.
+
+`step` is `learn(observe(frame))`: `observe` encodes (and measures the camera's motion) with
+its own memory of the previous frame, `learn` does the rest with the sequence's, so the two
+may run on consecutive frames at once (`perception.pipeline`). `learn` hands the map out
+before the optimiser step, which the map does not need.
 
 encoder_pad: under camera motion the map's peak went to the grid's outer ring, the cells
 whose receptive fields reach into the convolutions' zero padding. Measured with `bench
@@ -69,8 +75,8 @@ from activeloc_ros.perception import egomotion, motion
 ENCODER_NAMES = ('vgg16', 'vgg19', 'efficientnet_lite0', 'resnet50')
 MOTIONS = ('abs_sigmoid', 'sigmoid', 'raw', 'none')
 PRECISIONS = ('auto', 'float32', 'bfloat16')
-_NO_LOSSES = {'global': 0.0, 'attn': 0.0, 'total': 0.0}
 ENCODER_PRECISIONS = PRECISIONS + ('int8',)
+_NO_LOSSES = {'global': 0.0, 'attn': 0.0, 'total': 0.0}
 
 
 # torch's probes of the instruction sets that decide the encoder's speed (private in 2.13)
