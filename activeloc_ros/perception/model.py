@@ -488,11 +488,11 @@ class SurpriseModel:
         if cfg.fold_bn and not self.train_encoder and _has_batchnorm(self.encoder):
             from activeloc_ros.perception.encoders import fold_batchnorm
             self.frozen_encoder = fold_batchnorm(self.encoder)
-        precision = cfg.encoder_precision
-        if precision == 'auto' and not self.train_encoder and cfg.pretrained:
+        precision = _resolve(cfg.encoder_precision)
+        if cfg.encoder_precision == 'auto' and not self.train_encoder and cfg.pretrained:
             from activeloc_ros.perception import int8   # (random weights: not worth a build)
-            precision = 'int8' if int8.available() else 'auto'
-        precision = _resolve(precision)
+            if int8.available():
+                precision = 'int8'
         if precision == 'int8' and self.train_encoder:
             raise ConfigError("perception parameter 'encoder_precision' int8 needs a frozen "
                               'encoder (update_encoder false)')
