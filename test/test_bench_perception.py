@@ -72,7 +72,7 @@ def test_feature_gap_compares_each_precision_with_float32(tmp_path, monkeypatch,
     monkeypatch.setattr(int8, 'CALIBRATION_FRAMES', 4)
     make_moving_square(tmp_path / 'data', 'square', n=4)
     argv = ['--feature-gap', '--data', str(tmp_path / 'data'), '--every', '2', '--threads',
-            '1', '--encoder', 'efficientnet_lite0', '--set', 'pretrained=false', '--json']
+            '1', '--encoder', 'efficientnet_lite0', '--random-weights', '--json']
     assert bench.main(argv) == 0
     rows = json.loads(capsys.readouterr().out)
     assert [r['precision'] for r in rows] == ['bfloat16', 'int8']

@@ -319,6 +319,13 @@ def table(rows: list[dict[str, Any]]) -> str:
     return '\n'.join(lines)
 
 
+def weight_settings(args: argparse.Namespace) -> dict[str, Any]:
+    """The PerceptionConfig fields that --random-weights and --weights set."""
+    if args.random_weights:
+        return {'pretrained': False}
+    return {'weights': args.weights} if args.weights else {}
+
+
 def feature_gaps(root: str | None, *, encoder: str, every: int, threads: int,
                  extra: dict[str, Any]) -> list[dict[str, Any]]:
     """Per precision, the relative L2 distance of its encoder features from float32's on
@@ -358,7 +365,9 @@ def main(argv: list[str]) -> int:
         try:
             rows = [row for encoder in args.encoder or [PerceptionConfig.encoder]
                     for row in feature_gaps(args.data, encoder=encoder, every=args.every,
-                                            threads=args.threads, extra=overrides(args.set))]
+                                            threads=args.threads,
+                                            extra={**overrides(args.set),
+                                                   **weight_settings(args)})]
         except (ActivelocError, ValueError, yaml.YAMLError) as err:
             print(f'error: {err}', file=sys.stderr)
             return 1
@@ -384,12 +393,8 @@ def main(argv: list[str]) -> int:
     jobs = []
     for encoder in args.encoder or [PerceptionConfig.encoder]:
         for update in updates:
-            config = {**extra, 'encoder': encoder, 'update_encoder': update,
-                      'num_threads': args.threads}
-            if args.random_weights:
-                config['pretrained'] = False
-            elif args.weights:
-                config['weights'] = args.weights
+            config = {**extra, **weight_settings(args), 'encoder': encoder,
+                      'update_encoder': update, 'num_threads': args.threads}
             try:
                 PerceptionConfig.from_dict(config)      # a bad --set fails here, once
             except ConfigError as err:
