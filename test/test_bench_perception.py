@@ -79,3 +79,15 @@ def test_feature_gap_compares_each_precision_with_float32(tmp_path, monkeypatch,
     for r in rows:
         assert r['frames'] == 2 and r['sequences'] == 1
         assert 0 < r['mean'] <= r['max'] < 0.5
+
+
+def test_every_bench_command_reads_set_the_same_way():
+    """One parser: `lr=1e-4` is a number everywhere (YAML 1.1 made it a string here), and
+    repeated --set options add up instead of replacing each other."""
+    from activeloc_ros.bench import key_values
+    from activeloc_ros.bench import passive, screen
+    argv = ['--set', 'lr=1e-4', 'motion_source=image', '--set', 'hidden=8']
+    for args in (bench.parse_args(argv), passive.parser().parse_args(argv),
+                 screen.parser().parse_args(argv)):
+        assert key_values(args.set, '--set') == {'lr': 1e-4, 'motion_source': 'image',
+                                                 'hidden': 8}

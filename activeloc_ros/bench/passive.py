@@ -452,7 +452,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--ablations', nargs='+', metavar='NAME', default=['full'],
                    help=f'model variants, one row each: {", ".join(ABLATIONS)} or all '
                         '(default: full)')
-    p.add_argument('--set', nargs='+', metavar='KEY=JSON', default=[],
+    p.add_argument('--set', nargs='+', action='extend', metavar='KEY=JSON', default=[],
                    help='extra PerceptionConfig fields for every model row, e.g. lr=1e-4')
     p.add_argument('--no-model', action='store_true', help='baselines only')
     p.add_argument('--pan', type=float, default=0.0, metavar='DEG',

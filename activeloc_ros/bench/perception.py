@@ -25,8 +25,8 @@ import time
 from typing import Any, Iterator
 
 import numpy as np
-import yaml
 
+from activeloc_ros.bench import key_values
 from activeloc_ros.errors import ActivelocError, ConfigError, SourceError
 
 STAGES = ('preprocess', 'encode', 'predict', 'update')
@@ -54,8 +54,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument('--weights', help='encoder weights file (needed for vgg16)')
     p.add_argument('--random-weights', action='store_true',
                    help='random encoder weights: same cost, no weight files needed')
-    p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
-                   help='any PerceptionConfig field, e.g. --set hidden=256')
+    p.add_argument('--set', nargs='+', action='extend', default=[], metavar='KEY=VALUE',
+                   help='any PerceptionConfig field, e.g. --set hidden=256 lr=1e-4')
     p.add_argument('--floor', action='store_true',
                    help="also each stage's arithmetic floor (GFLOP over a measured matmul "
                         'peak) and the measured/floor ratio')
@@ -74,16 +74,6 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     if args.frames <= args.warmup:
         p.error('--frames must exceed --warmup')
     return args
-
-
-def overrides(pairs: list[str]) -> dict[str, Any]:
-    out = {}
-    for pair in pairs:
-        key, sep, value = pair.partition('=')
-        if not sep:
-            raise ConfigError(f'--set expects KEY=VALUE, got {pair!r}')
-        out[key.strip()] = yaml.safe_load(value)
-    return out
 
 
 def synthetic(width: int, height: int, *, seed: int = 0) -> Iterator[np.ndarray]:
@@ -366,9 +356,9 @@ def main(argv: list[str]) -> int:
             rows = [row for encoder in args.encoder or [PerceptionConfig.encoder]
                     for row in feature_gaps(args.data, encoder=encoder, every=args.every,
                                             threads=args.threads,
-                                            extra={**overrides(args.set),
+                                            extra={**key_values(args.set, '--set'),
                                                    **weight_settings(args)})]
-        except (ActivelocError, ValueError, yaml.YAMLError) as err:
+        except (ActivelocError, ValueError) as err:
             print(f'error: {err}', file=sys.stderr)
             return 1
         if args.json:
@@ -382,11 +372,11 @@ def main(argv: list[str]) -> int:
                   f'{100 * r["mean"]:>8.2f}{100 * r["max"]:>7.2f}')
         return 0
     try:
-        extra = overrides(args.set)
+        extra = key_values(args.set, '--set')
         size = tuple(int(v) for v in args.size.lower().split('x'))
         if len(size) != 2 or min(size) < 1:
             raise ConfigError(f'--size expects WxH, got {args.size!r}')
-    except (ValueError, yaml.YAMLError, ConfigError) as err:
+    except (ValueError, ConfigError) as err:
         print(f'error: {err}', file=sys.stderr)
         return 2
     updates = {'both': (False, True), 'yes': (True,), 'no': (False,)}[args.update_encoder]

@@ -433,11 +433,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--camera-fps', type=float, default=10.0, metavar='HZ',
                    help='frame rate of the virtual camera (default 10, the bundled bag\'s; '
                         '0: one picture per scene frame); the scene plays at its own rate')
-    p.add_argument('--set', nargs='+', metavar='KEY=VALUE', default=[],
+    p.add_argument('--set', nargs='+', action='extend', metavar='KEY=VALUE', default=[],
                    help='PerceptionConfig fields for every model method, e.g. lr=1e-4')
-    p.add_argument('--screen', nargs='+', metavar='KEY=VALUE', default=[],
+    p.add_argument('--screen', nargs='+', action='extend', metavar='KEY=VALUE', default=[],
                    help='ScreenConfig fields, e.g. view_fraction=0.3 width=640 height=480')
-    p.add_argument('--control', nargs='+', metavar='KEY=VALUE', default=[],
+    p.add_argument('--control', nargs='+', action='extend', metavar='KEY=VALUE', default=[],
                    help='controller settings for every method: ' + ', '.join(
                        PD_OPTIONS + CONTROL_OPTIONS) + " (dead_band in radians; "
                    "derivative=error is the paper's literal PD)")
