@@ -297,3 +297,29 @@ def test_ours_does_not_follow_a_passing_car_off_the_screen(data_root, tmp_path, 
     row = json.loads(capsys.readouterr().out.splitlines()[0])
     result = row['sequences']['otb_crossing']
     assert result['in_view'] >= 0.9 and result['aae_deg'] < 23.0, result
+
+
+def test_the_model_pointer_shares_only_a_frozen_encoder():
+    """An encoder that learns online starts every sequence from the same weights; a frozen
+    one is the same object, so it is not built again."""
+    from activeloc_ros.bench.pointers import ModelPointer
+    import torch
+    tiny = {'encoder': 'efficientnet_lite0', 'pretrained': False, 'hidden': 8,
+            'attn_units': 8, 'ego_motion': 'none'}
+    frames = np.random.default_rng(0).integers(0, 255, (4, 64, 64, 3), np.uint8)
+
+    learning = ModelPointer('ours', {**tiny, 'update_encoder': True})
+    learning.reset()
+    start = [p.detach().clone() for p in learning.model.encoder.parameters()]
+    for frame in frames:
+        learning.model.step(frame)
+    assert any(not torch.equal(a, b) for a, b in zip(start, learning.model.encoder.parameters()))
+    learning.reset()                                   # the next sequence
+    assert all(torch.equal(a, b) for a, b in zip(start, learning.model.encoder.parameters()))
+
+    frozen = ModelPointer('ours', tiny)
+    frozen.reset()
+    encoder = frozen.model.encoder
+    frozen.model.step(frames[0])
+    frozen.reset()
+    assert frozen.model.encoder is encoder

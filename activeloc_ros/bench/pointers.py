@@ -21,7 +21,9 @@ ABLATIONS: dict[str, dict] = {
 
 
 class ModelPointer:
-    """The perception model, fresh (same seed) for every sequence; its encoder is shared.
+    """The perception model, fresh (same seed) for every sequence. Its encoder is shared
+    between sequences only when frozen: one that learns online starts again from its
+    weights, so nothing learned on one sequence carries into the next.
 
     :param settings: PerceptionConfig fields (a Table 3 ablation already applied).
     """
@@ -36,7 +38,9 @@ class ModelPointer:
 
     def reset(self) -> None:
         if not self._fresh:
-            self.model = self._model_class(self.config, encoder=self.model.encoder)
+            frozen = not self.model.train_encoder
+            self.model = self._model_class(self.config,
+                                           encoder=self.model.encoder if frozen else None)
         self._fresh = False
 
     def locate(self, view: View) -> Pointing:
