@@ -281,7 +281,7 @@ def node_problems(node: str, values: dict) -> list[str]:
             from activeloc_ros.controller_node import config_from
             config_from(values)
         elif node == 'perception':
-            from activeloc_ros.perception.model import PerceptionConfig
+            from activeloc_ros.perception.config import PerceptionConfig
             PerceptionConfig.from_dict({k: v for k, v in values.items()
                                         if k in PerceptionConfig.descriptions()})
     except ConfigError as exc:

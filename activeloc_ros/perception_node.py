@@ -33,7 +33,8 @@ from activeloc_ros.errors import FrameError
 from activeloc_ros.health import PipelineStats
 from activeloc_ros.images import (decode_compressed, float_image_fields, image_to_rgb, overlay,
                                   rgb_to_image_fields)
-from activeloc_ros.perception.model import PerceptionConfig, PerceptionResult, SurpriseModel
+from activeloc_ros.perception.config import PerceptionConfig
+from activeloc_ros.perception.model import PerceptionResult, SurpriseModel
 from activeloc_ros.perception.pipeline import Pipeline
 from activeloc_ros.qos import offered_reliability
 from activeloc_ros.ros_params import declare, Param, run

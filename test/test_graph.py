@@ -67,7 +67,8 @@ def test_graph_in_one_executor(context):
     # maps come in frame order: each is followed by its location, stamps increase, and the
     # location is the one the packaged settings (location: mass) take from that map
     import torch
-    from activeloc_ros.perception.model import action_location, PerceptionConfig
+    from activeloc_ros.perception.config import PerceptionConfig
+    from activeloc_ros.perception.predictor import action_location
     cfg = PerceptionConfig()
     stamps = [loc.header.stamp.sec + loc.header.stamp.nanosec * 1e-9 for loc in probe.locations]
     assert all(b > a for a, b in zip(stamps, stamps[1:]))

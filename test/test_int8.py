@@ -8,7 +8,8 @@ from torch import nn
 
 from activeloc_ros.errors import ConfigError, WeightsError
 from activeloc_ros.perception import int8
-from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
+from activeloc_ros.perception.config import PerceptionConfig
+from activeloc_ros.perception.model import SurpriseModel
 
 
 SMALL = dict(encoder='efficientnet_lite0', predictor_precision='float32', pretrained=True,
@@ -57,10 +58,10 @@ def test_int8_features_stay_close_to_float32_and_the_model_is_built_once(cache, 
     assert printed.out == ''                # progress never lands in a command's stdout
     gaps = []
     for frame in frames(40)[20:]:          # pictures the calibration did not see
-        x = reference.preprocess(frame)
+        x = reference.features.preprocess(frame)
         with torch.inference_mode():
-            f8 = quantised._features(quantised.frozen_encoder, x)
-            f32 = reference._features(reference.frozen_encoder, x)
+            f8 = quantised.features.of(x)
+            f32 = reference.features.of(x)
         assert f8.dtype == torch.float32 and f8.shape == f32.shape
         gaps.append(float((f8 - f32).norm() / f32.norm()))
     assert 0 < max(gaps) < 0.1, gaps

@@ -13,8 +13,10 @@ import torch
 from torch import nn
 
 from activeloc_ros.errors import ConfigError, FrameError
-from activeloc_ros.perception import model as M
-from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
+from activeloc_ros.perception import model as M, predictor as P
+from activeloc_ros.perception.config import PerceptionConfig
+from activeloc_ros.perception.features import fast_bfloat16
+from activeloc_ros.perception.model import SurpriseModel
 
 SMALL = dict(encoder='efficientnet_lite0', encoder_precision='float32',
              predictor_precision='float32', pretrained=False, hidden=32, layers=3,
@@ -152,11 +154,11 @@ def test_first_map_is_uniform_then_a_distribution_with_its_argmax(real):
 def test_the_mass_location_is_the_centroid_of_the_cells_near_the_peak():
     grid = torch.full((4, 6), 0.01)
     grid[1, 1], grid[1, 2], grid[3, 5] = 0.4, 0.2, 0.05      # a group, and a weak stray cell
-    assert M.action_location(grid, 'peak', 0.25) == (1.5, 1.5)
-    x, y = M.action_location(grid, 'mass', 0.25)              # the stray cell is under 0.1
+    assert P.action_location(grid, 'peak', 0.25) == (1.5, 1.5)
+    x, y = P.action_location(grid, 'mass', 0.25)              # the stray cell is under 0.1
     assert (x, y) == pytest.approx(((0.4 * 1.5 + 0.2 * 2.5) / 0.6, 1.5))
-    assert M.action_location(grid, 'mass', 1.0) == (1.5, 1.5)
-    everything = M.action_location(torch.ones(4, 6), 'mass', 0.0)
+    assert P.action_location(grid, 'mass', 1.0) == (1.5, 1.5)
+    everything = P.action_location(torch.ones(4, 6), 'mass', 0.0)
     assert everything == pytest.approx((3.0, 2.0))            # the map's middle
 
 
@@ -166,7 +168,7 @@ def test_the_model_reports_the_mass_location_in_frame_pixels():
     for frame in frames:
         res = model.step(frame)
     m = torch.from_numpy(res.surprise_map)
-    x, y = M.action_location(m, 'mass', 0.0)
+    x, y = P.action_location(m, 'mass', 0.0)
     assert res.location_px == pytest.approx((x * 53 / model.grid, y * 37 / model.grid))
 
 
@@ -251,7 +253,7 @@ def test_adaptive_rule_boosts_the_rate_after_a_surprise():
     ('abs_sigmoid', 0.0), ('sigmoid', 0.5), ('raw', 0.0), ('none', 1.0)])
 def test_motion_weights(kind, at_rest):
     d = torch.tensor([0.0, -3.0, 3.0])
-    w = M.motion_weight(d, kind, 1.0)
+    w = P.motion_weight(d, kind, 1.0)
     assert float(w[0]) == pytest.approx(at_rest)
     assert (w >= 0).all()
     if kind != 'sigmoid':
@@ -345,7 +347,7 @@ def test_nan_loss_skips_the_update_but_keeps_the_map(monkeypatch):
         model.step(f)
         twin.step(f)
     before = weights(model)
-    real = M.global_error
+    real = P.global_error
 
     def poisoned(*args, **kw):
         loss, e = real(*args, **kw)
@@ -368,7 +370,7 @@ def test_nan_gradients_skip_the_update(monkeypatch):
     for f in frames[:2]:
         model.step(f)
     before = weights(model)
-    real = M.attention_loss
+    real = P.attention_loss
 
     def sharp(alpha, target, f):                         # finite value, infinite slope
         return real(alpha, target, f) + torch.sqrt((alpha - alpha.detach()).sum())
@@ -387,9 +389,9 @@ def test_an_untrained_residual_predictor_gives_the_motion_weighted_difference_ma
     model.step(a)
     got = model.step(b).surprise_map
     with torch.no_grad():
-        fa, fb = (model._to_cells(model.encoder(model.preprocess(x)))[0] for x in (a, b))
+        fa, fb = (model.features.to_cells(model.encoder(model.features.preprocess(x)))[0] for x in (a, b))
     d = fb - fa
-    e = (M.motion_weight(d, motion, 1.0) * d.square()).mean(1)
+    e = (P.motion_weight(d, motion, 1.0) * d.square()).mean(1)
     want = torch.softmax(e / 0.5, 0).reshape(model.grid, model.grid).numpy()
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)
 
@@ -402,9 +404,9 @@ def test_bfloat16_encoder_gives_float32_features_close_to_float32(update_encoder
     features = {}
     for precision in ('float32', 'bfloat16'):
         model = make(real=True, encoder_precision=precision, update_encoder=update_encoder)
-        x = model.preprocess(frames[0])
+        x = model.features.preprocess(frames[0])
         with torch.no_grad():
-            features[precision] = model._features(model.frozen_encoder, x)[0]
+            features[precision] = model.features.of(x)[0]
         assert all(p.dtype == torch.float32 for p in model.encoder.parameters())
         result = model.step(frames[0])
         result = model.step(frames[1])
@@ -414,7 +416,7 @@ def test_bfloat16_encoder_gives_float32_features_close_to_float32(update_encoder
     assert bf16.dtype == torch.float32 and bf16.shape == f32.shape
     if update_encoder:          # a frozen encoder's auto is int8: test_int8.py
         auto = make(real=True, encoder_precision='auto', update_encoder=update_encoder)
-        assert auto.precision == ('bfloat16' if M.fast_bfloat16() else 'float32')
+        assert auto.precision == ('bfloat16' if fast_bfloat16() else 'float32')
     gap = float((bf16 - f32).norm() / f32.norm())
     assert 0 < gap < 0.1, gap
 
@@ -425,7 +427,7 @@ def test_auto_precision_takes_bfloat16_where_the_cpu_computes_it_natively(
         monkeypatch, amx, avx512_bf16, native):
     monkeypatch.setattr(torch.cpu, '_is_amx_tile_supported', lambda: amx)
     monkeypatch.setattr(torch.cpu, '_is_avx512_bf16_supported', lambda: avx512_bf16)
-    assert M.fast_bfloat16() is native
+    assert fast_bfloat16() is native
     learning = make(encoder_precision='auto', update_encoder=True)   # not int8: it learns
     assert learning.precision == ('bfloat16' if native else 'float32')
 
@@ -450,14 +452,14 @@ def test_bfloat16_predictor_changes_only_the_arithmetic():
     w16 = torch.cat([p.detach().flatten() for p in m16.predictor.parameters()])
     assert 0 < float((w16 - w32).norm() / w32.norm()) < 0.01
     assert make(predictor_precision='auto').predictor_precision == (
-        'bfloat16' if M.fast_bfloat16() else 'float32')
+        'bfloat16' if fast_bfloat16() else 'float32')
 
 
 def test_frame_rms_normalises_every_frame():
     model = make(feature_norm='frame_rms')
     with torch.no_grad():
-        x = torch.cat([model.preprocess(f) for f in clip(2)])
-        f = model._to_cells(model.encoder(x) * torch.tensor([3.0, 0.1]).view(2, 1, 1, 1))
+        x = torch.cat([model.features.preprocess(f) for f in clip(2)])
+        f = model.features.to_cells(model.encoder(x) * torch.tensor([3.0, 0.1]).view(2, 1, 1, 1))
     np.testing.assert_allclose(f.square().mean(dim=(1, 2)).sqrt().numpy(), 1.0, rtol=1e-4)
 
 

@@ -34,7 +34,7 @@ def test_params_file_matches_declared_parameters(context, name):
 def test_perception_yaml_repeats_the_model_defaults():
     """The YAML overrides the dataclass, so a stale value would silently change the model."""
     import dataclasses
-    from activeloc_ros.perception.model import PerceptionConfig
+    from activeloc_ros.perception.config import PerceptionConfig
     values = yaml.safe_load((PARAMS / 'perception.yaml').read_text())['/**']['ros__parameters']
     for field in dataclasses.fields(PerceptionConfig):
         assert field.name in values, f'perception.yaml lacks {field.name}'

@@ -152,9 +152,11 @@ class FakeModel:
 
 @pytest.fixture
 def fake_model(monkeypatch):
+    config = types.ModuleType('activeloc_ros.perception.config')
+    config.PerceptionConfig = FakeConfig
     module = types.ModuleType('activeloc_ros.perception.model')
-    module.PerceptionConfig = FakeConfig
     module.SurpriseModel = FakeModel
+    monkeypatch.setitem(sys.modules, 'activeloc_ros.perception.config', config)
     monkeypatch.setitem(sys.modules, 'activeloc_ros.perception.model', module)
     FakeModel.built = 0
     return module

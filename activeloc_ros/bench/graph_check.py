@@ -42,7 +42,7 @@ def node_settings(node: str) -> dict:
 def bench_poses(scene: str, frames: int) -> list[tuple[float, float, float]]:
     """(t, pan, tilt) per frame of the benchmark's closed loop on the scene."""
     from activeloc_ros.controller_node import config_from
-    from activeloc_ros.perception.model import PerceptionConfig
+    from activeloc_ros.perception.config import PerceptionConfig
     source = open_scene(scene)
     fps = source.fps
 

@@ -217,7 +217,8 @@ class ModelMethod:
 
     def __init__(self, encoder: str | None, ablation: str, *, seed: int = 0,
                  extra: dict | None = None) -> None:
-        from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
+        from activeloc_ros.perception.config import PerceptionConfig
+        from activeloc_ros.perception.model import SurpriseModel
         settings = {'seed': seed, **(extra or {})}
         if encoder:
             settings['encoder'] = encoder

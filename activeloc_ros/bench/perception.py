@@ -35,7 +35,7 @@ SHORT_PRECISION = {'float32': 'f32', 'bfloat16': 'bf16', 'int8': 'int8'}
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
-    from activeloc_ros.perception.model import ENCODER_NAMES
+    from activeloc_ros.perception.config import ENCODER_NAMES
     p = argparse.ArgumentParser(
         prog='python -m activeloc_ros.bench perception',
         description='Per-frame latency, frames/s and memory of the perception model '
@@ -117,7 +117,7 @@ def video(path: str) -> Iterator[np.ndarray]:
 
 def cpu_info() -> dict[str, Any]:
     """The CPU's model name and which of `model.CPU_FEATURES` it has."""
-    from activeloc_ros.perception.model import cpu_flags
+    from activeloc_ros.perception.features import cpu_flags
     model = platform.processor() or 'unknown CPU'
     try:
         with open('/proc/cpuinfo') as f:
@@ -129,7 +129,7 @@ def cpu_info() -> dict[str, Any]:
 
 
 def describe_cpu(cpu: dict[str, Any]) -> str:
-    from activeloc_ros.perception.model import CPU_FEATURES
+    from activeloc_ros.perception.features import CPU_FEATURES
     missing = [name for name, _ in CPU_FEATURES if name not in cpu['flags']]
     return (f'{cpu["model"]}, {cpu["cores"]} cores, {", ".join(cpu["flags"]) or "no AVX2"}'
             + (f'; no {", ".join(missing)}' if missing else ''))
@@ -158,7 +158,7 @@ def matmul_peak_gflops(dtype_name: str, *, n: int = 2048, seconds: float = 1.0) 
 
 def is_default(config: dict[str, Any]) -> bool:
     """Is this the shipped configuration, the thread count aside?"""
-    from activeloc_ros.perception.model import PerceptionConfig
+    from activeloc_ros.perception.config import PerceptionConfig
     mine = PerceptionConfig.from_dict(config).to_dict()
     return all(mine[k] == v for k, v in PerceptionConfig().to_dict().items()
                if k != 'num_threads')
@@ -175,11 +175,11 @@ def stage_gflop(model, frame: np.ndarray) -> dict[str, float]:
             fn()
         return counter.get_total_flops() / 1e9
 
-    x = model.preprocess(frame)
+    x = model.features.preprocess(frame)
 
     def encode():            # the float encoder: the same arithmetic in every precision
         with torch.inference_mode():
-            model.encoder(model._padded(x))
+            model.encoder(model.features.padded(x))
 
     def predict():
         with torch.no_grad():
@@ -236,7 +236,8 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
     """One configuration, in its own process so memory figures are its own."""
     import torch
 
-    from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
+    from activeloc_ros.perception.config import PerceptionConfig
+    from activeloc_ros.perception.model import SurpriseModel
     from activeloc_ros.progress import Progress
     torch.set_num_threads(job['threads'])
     cfg = PerceptionConfig.from_dict(job['config'])
@@ -323,7 +324,8 @@ def feature_gaps(root: str | None, *, encoder: str, every: int, threads: int,
     import torch
 
     from activeloc_ros import data
-    from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
+    from activeloc_ros.perception.config import PerceptionConfig
+    from activeloc_ros.perception.model import SurpriseModel
     torch.set_num_threads(threads)
     models = {precision: SurpriseModel(PerceptionConfig.from_dict(
         {**extra, 'encoder': encoder, 'encoder_precision': precision, 'num_threads': threads}))
@@ -337,11 +339,11 @@ def feature_gaps(root: str | None, *, encoder: str, every: int, threads: int,
         for sample in seq.frames():
             if sample.index % every:
                 continue
-            x = reference.preprocess(sample.image)
+            x = reference.features.preprocess(sample.image)
             with torch.inference_mode():
-                want = reference._features(reference.frozen_encoder, x)
+                want = reference.features.of(x)
                 for precision, model in models.items():
-                    got = model._features(model.frozen_encoder, x)
+                    got = model.features.of(x)
                     gaps[precision].append(float((got - want).norm() / want.norm()))
     return [{'encoder': encoder, 'precision': precision, 'frames': len(values),
              'sequences': len(sequences), 'mean': float(np.mean(values)),
@@ -349,7 +351,7 @@ def feature_gaps(root: str | None, *, encoder: str, every: int, threads: int,
 
 
 def main(argv: list[str]) -> int:
-    from activeloc_ros.perception.model import PerceptionConfig
+    from activeloc_ros.perception.config import PerceptionConfig
     args = parse_args(argv)
     if args.feature_gap:
         try:

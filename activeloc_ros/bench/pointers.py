@@ -29,7 +29,8 @@ class ModelPointer:
     """
 
     def __init__(self, name: str, settings: dict):
-        from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
+        from activeloc_ros.perception.config import PerceptionConfig
+        from activeloc_ros.perception.model import SurpriseModel
         self.name = name
         self.config = PerceptionConfig.from_dict(settings)
         self._model_class = SurpriseModel

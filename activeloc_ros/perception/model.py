@@ -7,6 +7,11 @@ predicts every cell's feature of the next frame. The motion-weighted prediction 
 frame that then arrives, softmaxed over the cells, is the surprise map; its argmax is the
 action's location. One optimiser step per frame on L_global + L_attn keeps the model adapting.
 
+This module is the online learner: `SurpriseModel` (one frame a step, the optimiser, the
+rollback of non-finite updates, checkpoints). Its parts live beside it: the configuration
+(`perception.config`), the encoder and its arithmetic (`perception.features`), the
+predictor and the losses (`perception.predictor`).
+
 Which computation happens when (one frame per `step`, t the new frame):
     the prediction of f_t is made from f_{t-1} with the state after t-2 and the current
     weights W, i.e. exactly what was known before frame t arrived. It is computed at step t
@@ -54,10 +59,8 @@ every sequence (kitti 65 -> 32%, tud 52 -> 35, crossing 31 -> 18, walking2 75 ->
 mean AAE. 32 px costs the encoder 1.65x the work of none (288 px input instead of 224).
 """
 import collections
-import copy
 import dataclasses
-from dataclasses import dataclass, field
-import math
+from dataclasses import dataclass
 import random
 import time
 from typing import Any, Callable
@@ -66,257 +69,14 @@ import cv2
 import numpy as np
 import torch
 from torch import nn
-import torch.nn.functional as F
 
-from activeloc_ros.checks import above, at_least, Check, in_range, one_of
-from activeloc_ros.errors import ConfigError, FrameError
 from activeloc_ros.perception import egomotion, motion
+from activeloc_ros.perception.config import PerceptionConfig
+from activeloc_ros.perception.features import Features, resolve_precision
+from activeloc_ros.perception.predictor import (
+    action_location, attention_loss, global_error, motion_weight, Predictor, surprise_map)
 
-ENCODER_NAMES = ('vgg16', 'vgg19', 'efficientnet_lite0', 'resnet50')
-MOTIONS = ('abs_sigmoid', 'sigmoid', 'raw', 'none')
-PRECISIONS = ('auto', 'float32', 'bfloat16')
-ENCODER_PRECISIONS = PRECISIONS + ('int8',)
 _NO_LOSSES = {'global': 0.0, 'attn': 0.0, 'total': 0.0}
-
-
-# torch's probes of the instruction sets that decide the encoder's speed (private in 2.13)
-CPU_FEATURES = (('AVX2', '_is_avx2_supported'), ('AVX512', '_is_avx512_supported'),
-                ('VNNI', '_is_vnni_supported'), ('AVX512_BF16', '_is_avx512_bf16_supported'),
-                ('AMX', '_is_amx_tile_supported'))
-
-
-def cpu_flags() -> list[str]:
-    """Which of `CPU_FEATURES` this CPU has."""
-    return [name for name, probe in CPU_FEATURES
-            if bool(getattr(torch.cpu, probe, lambda: False)())]
-
-
-def fast_bfloat16() -> bool:
-    """Does this CPU compute in bfloat16 natively: AMX tiles (Intel Sapphire Rapids on) or
-    AVX512_BF16 dot products (AMD Zen 4 on, Intel Cooper Lake)? There bfloat16 convolutions
-    run faster than float32; elsewhere they are emulated and slower."""
-    return bool({'AMX', 'AVX512_BF16'} & set(cpu_flags()))
-
-
-def _resolve(precision: str) -> str:
-    """The precision 'auto' stands for on this CPU."""
-    if precision == 'auto':
-        return 'bfloat16' if fast_bfloat16() else 'float32'
-    return precision
-
-
-def _blur(value: int) -> 'str | None':
-    if value == 0 or (value >= 3 and value % 2 == 1):
-        return None
-    return f'must be 0 (off) or an odd size >= 3, got {value}'
-
-
-def _param(default: Any, help: str, check: Check | None = None) -> Any:
-    return field(default=default, metadata={'help': help, 'check': check})
-
-
-@dataclass
-class PerceptionConfig:
-    """Every choice of the perception model; `from_dict` builds it from ROS parameters/YAML."""
-    # encoder
-    encoder: str = _param(
-        'vgg19',
-        'CNN encoder to the 14x14 grid. Default vgg19 to pool4: the closest stand-in for the '
-        'paper\'s vgg16 pool4 whose ImageNet weights the registries hold; vgg16 needs '
-        '`weights`; efficientnet_lite0 is ~17x cheaper in float32, 3.5x in bfloat16 '
-        '(bench screen, static sequences: AAE 16.0 deg vs vgg19\'s 13.3)', one_of(*ENCODER_NAMES))
-    weights: str = _param('', 'encoder weights file; empty = the package weight cache')
-    encoder_precision: str = _param(
-        'auto', 'arithmetic of the encoder\'s forward pass: float32; bfloat16 (features '
-        'within ~1% of float32; faster where the CPU computes it natively, slower where it is '
-        'emulated); int8 (OpenVINO, quantised once by NNCF on the sample bag, see '
-        'perception.int8; a frozen encoder only); auto = int8 for a frozen ImageNet '
-        'encoder, else bfloat16 where the CPU has AMX or AVX512_BF16, else float32 (bench '
-        'screen, 5 static dev sequences, seeds 0-2: mean AAE 10.23 deg in int8, 10.64 in '
-        'bfloat16, 10.25 in float32)', one_of(*ENCODER_PRECISIONS))
-    encoder_pad: int = _param(
-        32, 'pixels of mirrored picture added round the encoder input, whose extra feature '
-        'cells are cut off again: the border cells then see picture, not the zero padding '
-        'of the convolutions, which otherwise makes them the most surprising cells when the '
-        'camera moves (a multiple of the encoder stride, 16; 0 = off, paper)', at_least(0))
-    pretrained: bool = _param(
-        True, 'load ImageNet weights; False = random encoder, for unit tests only')
-    blur_ksize: int = _param(
-        0, 'Gaussian blur of the 224x224 frame before encoding; 0 = off, 5 = lab code', _blur)
-    feature_norm: str = _param(
-        'frame_rms', 'scale of the features the predictor and the losses see: frame_rms '
-        '(each frame divided by its RMS over cells and channels, so targets are O(1) whatever '
-        'the encoder; without it the predictor does not learn online) or none (raw encoder '
-        'units, paper)', one_of('none', 'frame_rms'))
-    # predictor
-    hidden: int = _param(512, 'units of each LSTM (paper 512)', at_least(1))
-    layers: int = _param(3, 'stacked LSTMs (paper 3)', at_least(1))
-    attn_units: int = _param(512, 'width of the Bahdanau attention score', at_least(1))
-    predictor_precision: str = _param(
-        'auto', 'arithmetic of the predictor\'s matrix products, forward and backward: '
-        'float32, or bfloat16 under autocast (weights, optimiser and losses stay float32); '
-        'auto = bfloat16 where the CPU computes it natively (AMX or AVX512_BF16), else '
-        'float32', one_of(*PRECISIONS))
-    attn_rescale: bool = _param(
-        True, 'feed N * alpha * f to the LSTM (N cells), so uniform attention passes the '
-        'features unchanged; False = alpha * f as the lab code (inputs ~f/196)')
-    residual: bool = _param(
-        False, 'predict the change: fhat = f_t + head(h) with the head starting at zero, '
-        'i.e. a copy-last-frame predictor that learns corrections; False = the top LSTM '
-        'predicts the feature itself (paper)')
-    head: str = _param(
-        'linear', 'top LSTM -> predicted feature: linear (to C channels, unbounded) or none '
-        '(the LSTM output itself, lab code; needs hidden == C)', one_of('linear', 'none'))
-    # losses
-    mode: str = _param(
-        'full', 'full = this paper; predlearn = the ECCV\'20 PredLearn baseline of Table 3 '
-        '(motion=raw and no L_attn, whatever those fields say)', one_of('full', 'predlearn'))
-    motion: str = _param(
-        'abs_sigmoid', 'weight of the prediction error by the motion d = f_t - f_{t-1}: '
-        'abs_sigmoid = 2*sigmoid(|d|/s)-1 (0 where nothing moves, -> 1 with motion); '
-        'sigmoid = sigmoid(d/s), the paper\'s literal Eq. 2 (0.5 where nothing moves, '
-        'below 0.5 where a feature drops); raw = d^2 (lab code, Table 3 "w/o normalized '
-        'motion"); none = unweighted', one_of(*MOTIONS))
-    motion_scale: float = _param(
-        1.0, 'motion scale s of the sigmoid weightings (paper: 1)', above(0.0))
-    motion_source: str = _param(
-        'features', 'what the motion d is measured on: features = f_t - f_{t-1} of each '
-        'cell, broadcast over nothing (paper Eq. 2); image = the per-cell mean change of '
-        'the blurred grey picture against the previous one moved into the new view '
-        '(perception.motion: pixel-accurate, so the 14x14 features\' misregistration under '
-        'camera motion is no motion), in grey levels scaled by image_motion_scale',
-        one_of('features', 'image'))
-    image_motion_scale: float = _param(
-        2.0, 'with motion_source image, the change (grey levels) at which the sigmoid '
-        'weights reach ~0.46', above(0.0))
-    use_attn_loss: bool = _param(True, 'add L_attn (paper Eq. 3); False = Table 3 "w/o L_attn"')
-    attn_weight: float = _param(1.0, 'factor of L_attn in the total loss', at_least(0.0))
-    ego_motion: str = _param(
-        'similarity', 'the camera\'s own motion: estimated from the images (ORB + RANSAC) '
-        'as a similarity or a homography (exact for a camera turning about its optical '
-        'centre), the new frame is compared with the previous one warped into its view, '
-        'and the LSTM state and past maps move with it; none = ignored (paper; a turning '
-        'camera makes the whole view surprising)', one_of('none', 'similarity', 'homography'))
-    ego_warp: str = _param(
-        'features', 'with ego_motion, how the previous frame\'s features reach the new '
-        'view: features = they are warped cell by cell (cells the previous view did not '
-        'see take the new frame\'s); image = the previous image is warped and encoded '
-        'again, a second encoder pass on every frame the camera moved',
-        one_of('features', 'image'))
-    map_temperature: float = _param(
-        1.0, 'softmax temperature of the surprise map over the cells (paper: 1)', above(0.0))
-    location: str = _param(
-        'mass', 'where the action is: peak = the centre of the map\'s argmax cell (paper); '
-        'mass = the centroid of the cells that reach location_share of the peak, which '
-        'follows a group rather than the one cell of it that is most surprising this frame '
-        '(bench screen, 5 static dev sequences, faithful rig: mean AAE 18.34 deg with peak, '
-        '11.12 +- 0.25 over 3 seeds with mass 0.25: lower on 4 of the 5, higher on vot_ball1, '
-        '10.35 -> 12.5)',
-        one_of('peak', 'mass'))
-    location_share: float = _param(
-        0.25, 'with location mass, the share of the peak value a cell needs to count (same '
-        'benchmark, seed 0: 0 -> 13.45 deg, 0.1 -> 12.21, 0.25 -> 10.87, 0.5 -> 15.29, '
-        '0.75 -> 17.93)', in_range(0.0, 1.0))
-    loss_reduction: str = _param(
-        'mean', 'L_global over cells and channels: mean or sum', one_of('mean', 'sum'))
-    # online learning
-    learn: bool = _param(True, 'one optimiser step per frame; False = predict only')
-    update_encoder: bool = _param(
-        False, 'also train the encoder online (paper: True; it costs 2 encoder backward '
-        'passes per frame, ~5x the frozen step with efficientnet_lite0 on 2 CPU cores)')
-    encoder_grad: str = _param(
-        'both', 'with update_encoder, the encoder gradient flows through both the '
-        'predictor\'s input and the target (exact; re-encodes the previous frame) or through '
-        'the target only (half the encoder cost)', one_of('both', 'target'))
-    optimizer: str = _param('adam', 'online optimiser', one_of('adam', 'sgd'))
-    lr: float = _param(
-        1e-3, 'base learning rate (paper 1e-6, which moves nothing within thousands of '
-        'frames here)', at_least(0.0))
-    encoder_lr_scale: float = _param(
-        1.0, 'encoder learning rate = lr * this (paper: 1)', at_least(0.0))
-    momentum: float = _param(0.0, 'SGD momentum', at_least(0.0))
-    grad_clip: float = _param(
-        0.0, 'clip the global gradient norm to this; 0 = off', at_least(0.0))
-    adaptive_lr: bool = _param(
-        False, 'adaptive learning (Aakur & Sarkar CVPR\'19, paper: on): a loss much above '
-        'the recent mean gets a boosted learning rate for that step; off by default: with '
-        'Adam the 100x steps undo what was learnt')
-    adaptive_window: int = _param(30, 'losses in the running mean', at_least(1))
-    adaptive_ratio: float = _param(
-        1.5, 'boost when loss / mean of the window exceeds this', above(0.0))
-    adaptive_boost: float = _param(100.0, 'learning-rate factor of a boosted step', above(0.0))
-    snapshot_every: int = _param(
-        25, 'copy the weights and optimiser state every N finite updates; non-finite '
-        'weights are restored from the copy', at_least(1))
-    # runtime
-    seed: int = _param(0, 'seed of random, numpy and torch', at_least(0))
-    num_threads: int = _param(0, 'torch CPU threads (process-wide); 0 = leave as is',
-                              at_least(0))
-    channels_last: bool = _param(True, 'channels-last memory format for the encoder')
-    fold_bn: bool = _param(
-        True, 'run a frozen encoder with BatchNorm folded into its convs (same features, '
-        'about 30% cheaper for efficientnet_lite0)')
-    compile: bool = _param(False, 'torch.compile the predictor (slow first frames)')
-
-    def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            problem = self.check(f.name, getattr(self, f.name))
-            if problem:
-                raise ConfigError(f'perception parameter {f.name!r} {problem}')
-
-    @classmethod
-    def check(cls, name: str, value: Any) -> 'str | None':
-        """Why `value` is invalid for field `name`, or None if it is valid (a pure function)."""
-        spec = {f.name: f for f in dataclasses.fields(cls)}.get(name)
-        if spec is None:
-            return f'is unknown (known: {", ".join(sorted(_field_names(cls)))})'
-        kind = spec.type
-        if kind is bool and not isinstance(value, bool):
-            return f'must be a bool, got {value!r}'
-        if kind is int and (isinstance(value, bool) or not isinstance(value, int)):
-            return f'must be an int, got {value!r}'
-        if kind is float:
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                return f'must be a number, got {value!r}'
-            if not math.isfinite(value):
-                return f'must be finite, got {value!r}'
-        if kind is str and not isinstance(value, str):
-            return f'must be a string, got {value!r}'
-        rule = spec.metadata.get('check')
-        return rule(value) if rule else None
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> 'PerceptionConfig':
-        """Build from a plain dict; an unknown key or invalid value raises ConfigError."""
-        names = _field_names(cls)
-        unknown = sorted(k for k in d if k not in names)
-        if unknown:
-            raise ConfigError(f'unknown perception parameter {unknown[0]!r} '
-                              f'(known: {", ".join(sorted(names))})')
-        types = {f.name: f.type for f in dataclasses.fields(cls)}
-        # YAML and ROS give 1 for 1.0: accept ints where a float is expected
-        values = {k: float(v) if types[k] is float and type(v) is int else v
-                  for k, v in d.items()}
-        return cls(**values)
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def descriptions(cls) -> dict[str, str]:
-        return {f.name: f.metadata['help'] for f in dataclasses.fields(cls)}
-
-    @property
-    def motion_weighting(self) -> str:
-        return 'raw' if self.mode == 'predlearn' else self.motion
-
-    @property
-    def attn_loss_on(self) -> bool:
-        return self.mode == 'full' and self.use_attn_loss
-
-
-def _field_names(cls) -> set[str]:
-    return {f.name for f in dataclasses.fields(cls)}
 
 
 @dataclass
@@ -347,104 +107,6 @@ class PerceptionResult:
     frame_index: int
 
 
-class Predictor(nn.Module):
-    """Per-cell Bahdanau attention and stacked LSTMs; all cells share the weights."""
-
-    def __init__(self, cfg: PerceptionConfig, channels: int):
-        super().__init__()
-        if cfg.head == 'none' and cfg.hidden != channels:
-            raise ConfigError(f"perception parameter 'head' none needs hidden == encoder "
-                              f'channels ({channels}), got hidden={cfg.hidden}')
-        self.hidden = cfg.hidden
-        self.layers = cfg.layers
-        self.rescale = cfg.attn_rescale
-        self.w1 = nn.Linear(channels, cfg.attn_units)
-        self.w2 = nn.Linear(cfg.hidden, cfg.attn_units, bias=False)
-        self.v = nn.Linear(cfg.attn_units, 1, bias=False)
-        # one matmul per LSTM: gates (i, f, g, o) of [input, h_prev], as torch.nn.LSTM
-        sizes = [channels] + [cfg.hidden] * (cfg.layers - 1)
-        self.cells = nn.ModuleList(nn.Linear(n + cfg.hidden, 4 * cfg.hidden) for n in sizes)
-        self.head = nn.Linear(cfg.hidden, channels) if cfg.head == 'linear' else nn.Identity()
-        self.residual = cfg.residual
-        if cfg.residual and cfg.head == 'linear':
-            nn.init.zeros_(self.head.weight)
-            nn.init.zeros_(self.head.bias)
-
-    def initial_state(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
-        zeros = torch.zeros(self.layers, n, self.hidden)
-        return zeros, zeros.clone()                             # (L, N, H) each
-
-    def forward(self, f: torch.Tensor, state: tuple[torch.Tensor, torch.Tensor]
-                ) -> tuple[torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
-        """Predict each cell's next feature from its current one.
-
-        :param f: (N, C) features of the N cells.
-        :param state: (h, c), each (L, N, H), after the previous frame.
-        :return: fhat (N, C), attention (N,) summing to 1, the new (h, c).
-        """
-        h_prev, c_prev = state
-        score = torch.tanh(self.w1(f) + self.w2(h_prev[-1]))   # (N, A)
-        alpha = torch.softmax(self.v(score).squeeze(1), dim=0)  # (N,) over the cells
-        x = alpha[:, None] * f                                  # (N, C)
-        if self.rescale:
-            x = x * f.shape[0]
-        hs, cs = [], []
-        for i, cell in enumerate(self.cells):
-            gates = cell(torch.cat([x, h_prev[i]], dim=1))      # (N, 4H)
-            ig, fg, gg, og = gates.chunk(4, dim=1)
-            c = torch.sigmoid(fg) * c_prev[i] + torch.sigmoid(ig) * torch.tanh(gg)
-            x = torch.sigmoid(og) * torch.tanh(c)               # (N, H)
-            hs.append(x)
-            cs.append(c)
-        fhat = self.head(x)                                     # (N, C)
-        if self.residual:
-            fhat = fhat + f
-        return fhat, alpha, (torch.stack(hs), torch.stack(cs))
-
-
-def motion_weight(diff: torch.Tensor, kind: str, scale: float) -> torch.Tensor:
-    """Weight of each feature's prediction error by its motion `diff` = f_t - f_{t-1}."""
-    if kind == 'abs_sigmoid':
-        return 2.0 * torch.sigmoid(diff.abs() / scale) - 1.0
-    if kind == 'sigmoid':
-        return torch.sigmoid(diff / scale)
-    if kind == 'raw':
-        return diff.square()
-    return torch.ones_like(diff)
-
-
-def global_error(f_next: torch.Tensor, fhat: torch.Tensor, weight: torch.Tensor, *,
-                 reduction: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """L_global and the per-cell error e (channel mean), from (N, C) tensors."""
-    err = weight * (f_next - fhat).square()                     # (N, C)
-    loss = err.mean() if reduction == 'mean' else err.sum()
-    return loss, err.mean(dim=1)                                # (), (N,)
-
-
-def attention_loss(alpha: torch.Tensor, target: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
-    """Paper Eq. 3: attention (N,) against the previous surprise map (N,), on features (N, C)."""
-    gap = alpha - target                                        # (N,)
-    return torch.linalg.vector_norm(gap) + torch.linalg.vector_norm(gap[:, None] * f)
-
-
-def surprise_map(e: torch.Tensor, temperature: float) -> torch.Tensor:
-    return torch.softmax(e / temperature, dim=0)                # (N,)
-
-
-def action_location(grid: torch.Tensor, kind: str, share: float) -> tuple[float, float]:
-    """(x, y) of the action on a (rows, cols) map, in cells (0.5 = the first cell's centre):
-    'peak' the argmax cell's centre; 'mass' the map-weighted centroid of the cells that
-    reach `share` of the peak."""
-    rows, cols = grid.shape
-    if kind == 'peak':
-        row, col = divmod(int(torch.argmax(grid)), cols)
-        return col + 0.5, row + 0.5
-    weight = torch.where(grid >= share * grid.max(), grid, torch.zeros(()))
-    ys, xs = torch.meshgrid(torch.arange(rows) + 0.5, torch.arange(cols) + 0.5, indexing='ij')
-    total = weight.sum()
-    return float((weight * xs).sum() / total), float((weight * ys).sum() / total)
-
-
 def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)
@@ -471,58 +133,14 @@ class SurpriseModel:
         if cfg.num_threads:
             torch.set_num_threads(cfg.num_threads)
         seed_everything(cfg.seed)
-        if encoder is None:
-            from activeloc_ros.perception.encoders import build_encoder
-            encoder = build_encoder(cfg.encoder, weights=cfg.weights or None,
-                                    pretrained=cfg.pretrained, classifier=False)
-        # eval mode always: BatchNorm statistics of one frame are meaningless; the weights
-        # still learn when update_encoder
-        self.encoder = encoder.eval()
-        if cfg.channels_last:
-            self.encoder = self.encoder.to(memory_format=torch.channels_last)
         self.train_encoder = cfg.learn and cfg.update_encoder
-        self.encoder.requires_grad_(self.train_encoder)
-        # a frozen encoder runs with BatchNorm folded into its convs (same maps, cheaper);
-        # `encoder` keeps the unfolded weights for checkpoints
-        self.frozen_encoder = self.encoder
-        if cfg.fold_bn and not self.train_encoder and _has_batchnorm(self.encoder):
-            from activeloc_ros.perception.encoders import fold_batchnorm
-            self.frozen_encoder = fold_batchnorm(self.encoder)
-        precision = _resolve(cfg.encoder_precision)
-        if cfg.encoder_precision == 'auto' and not self.train_encoder and cfg.pretrained:
-            from activeloc_ros.perception import int8   # (random weights: not worth a build)
-            if int8.available():
-                precision = 'int8'
-        if precision == 'int8' and self.train_encoder:
-            raise ConfigError("perception parameter 'encoder_precision' int8 needs a frozen "
-                              'encoder (update_encoder false)')
-        self.precision = precision                              # the encoder's, in use
-        self.predictor_precision = _resolve(cfg.predictor_precision)
-        if precision == 'bfloat16' and not self.train_encoder:
-            # cast the weights once: autocast would cast them again on every frame
-            if self.frozen_encoder is self.encoder:
-                self.frozen_encoder = copy.deepcopy(self.encoder)
-            self.frozen_encoder = self.frozen_encoder.to(torch.bfloat16)
-        self.size = int(encoder.input_size)
-        self.channels = int(encoder.channels)
-        with torch.inference_mode():                            # the grid the encoder makes
-            zeros = torch.zeros(1, 3, self.size, self.size)
-            probe = self._run(self.frozen_encoder, self.encoder.preprocess(zeros))
-        self.grid = int(probe.shape[-1])                        # 14 at 224
-        self.cells = self.grid * probe.shape[-2]
-        stride = self.size // self.grid                         # 16 for the 14x14 grid
-        if cfg.encoder_pad % stride or cfg.encoder_pad >= self.size:
-            raise ConfigError(f"perception parameter 'encoder_pad' must be a multiple of the "
-                              f'encoder stride {stride} below {self.size}, got '
-                              f'{cfg.encoder_pad}')
-        if precision == 'int8':
-            from activeloc_ros.perception import int8, weights
-            side = self.size + 2 * cfg.encoder_pad
-            self.frozen_encoder = int8.load(
-                self.frozen_encoder, name=cfg.encoder, input_shape=(1, 3, side, side),
-                prepare=lambda rgb: self._padded(self._tensor(self._resize(rgb))),
-                threads=torch.get_num_threads(), cache=weights.cache_dir())
-        self.predictor = Predictor(cfg, self.channels)
+        self.features = Features(cfg, encoder=encoder, train=self.train_encoder)
+        f = self.features
+        self.encoder = f.encoder                    # the weights a checkpoint holds
+        self.precision = f.precision                # the encoder's, in use
+        self.size, self.grid, self.cells = f.size, f.grid, f.cells
+        self.predictor_precision = resolve_precision(cfg.predictor_precision)
+        self.predictor = Predictor(cfg, f.channels)
         self._predict = torch.compile(self.predictor) if cfg.compile else self.predictor
         groups = [{'params': list(self.predictor.parameters()), 'scale': 1.0}]
         if self.train_encoder:
@@ -584,73 +202,18 @@ class SurpriseModel:
         self._forget_sequence()
 
     # -- one frame ---------------------------------------------------------------------------
-    def preprocess(self, frame: np.ndarray) -> torch.Tensor | None:
-        """(H, W, 3) RGB 0..255 -> (1, 3, S, S) normalised encoder input; None if not finite."""
-        img = self._resize(frame)
-        return None if img is None else self._tensor(img)
-
-    def _resize(self, frame: np.ndarray) -> np.ndarray | None:
-        """(H, W, 3) RGB 0..255 -> (S, S, 3) encoder-sized image; None if not finite."""
-        _check_frame(frame)
-        img = frame
-        if frame.dtype != np.uint8:
-            if not np.isfinite(frame).all():
-                return None
-            img = frame.astype(np.float32, copy=False)
-        h, w = img.shape[:2]
-        shrink = h >= self.size and w >= self.size
-        img = cv2.resize(img, (self.size, self.size),
-                         interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
-        if self.cfg.blur_ksize:
-            img = cv2.GaussianBlur(img, (self.cfg.blur_ksize,) * 2, 0)
-        return img
-
-    def _tensor(self, img: np.ndarray) -> torch.Tensor:
-        x = torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1)[None].float()
-        x = self.encoder.preprocess(x)                          # (1, 3, S, S)
-        if self.cfg.channels_last:
-            x = x.contiguous(memory_format=torch.channels_last)
-        return x
-
-    def _features(self, encoder: nn.Module, x: torch.Tensor) -> torch.Tensor:
-        """(B, 3, S, S) -> (B, N, C) float32 features, computed at `self.precision`."""
-        return self._to_cells(self._forward(encoder, x))
-
-    def _forward(self, encoder: nn.Module, x: torch.Tensor) -> torch.Tensor:
-        crop = self.cfg.encoder_pad * self.grid // self.size   # cells the padding adds
-        f = self._run(encoder, self._padded(x))
-        return f[..., crop:f.shape[-2] - crop, crop:f.shape[-1] - crop]
-
-    def _padded(self, x: torch.Tensor) -> torch.Tensor:
-        pad = self.cfg.encoder_pad
-        return F.pad(x, (pad,) * 4, mode='reflect') if pad else x
-
-    def _run(self, encoder: nn.Module, x: torch.Tensor) -> torch.Tensor:
-        if self.precision in ('float32', 'int8'):
-            return encoder(x)
-        if encoder is self.frozen_encoder and not self.train_encoder:  # bfloat16 weights
-            return encoder(x.to(torch.bfloat16)).float()
-        with torch.autocast('cpu', dtype=torch.bfloat16):
-            return encoder(x).float()
-
-    def _to_cells(self, f: torch.Tensor) -> torch.Tensor:
-        f = f.flatten(2).transpose(1, 2)                        # (B, C, g, g) -> (B, N, C)
-        if self.cfg.feature_norm == 'frame_rms':
-            f = f / (f.square().mean(dim=(1, 2), keepdim=True).sqrt() + 1e-6)
-        return f
-
     def _encode(self, x: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor]:
         """Features (N, C) of the current frame and, where the encoder learns through both
         (`encoder_grad: both`), of the previous one again with the current weights."""
         if not (self.train_encoder and self.x_prev is not None):
             with torch.inference_mode():
-                f_cur = self._features(self.frozen_encoder, x)[0]
+                f_cur = self.features.of(x)[0]
             return None, f_cur.clone()                          # a normal tensor again
         with torch.enable_grad():
             if self.cfg.encoder_grad == 'both':                 # re-encode with current weights
-                feats = self._features(self.encoder, torch.cat([self.x_prev, x]))  # (2, N, C)
+                feats = self.features.of(torch.cat([self.x_prev, x]), learning=True)  # (2, N, C)
                 return feats[0], feats[1]
-            return None, self._features(self.encoder, x)[0]
+            return None, self.features.of(x, learning=True)[0]
 
     def step(self, frame: np.ndarray) -> PerceptionResult:
         """Encode a frame, score the prediction made for it, update online, predict on."""
@@ -664,14 +227,14 @@ class SurpriseModel:
         cfg = self.cfg
         t0 = time.perf_counter()
         timings = dict.fromkeys(('preprocess', 'encode', 'predict', 'update'), 0.0)
-        img = self._resize(frame)                   # a malformed frame raises: not counted
+        img = self.features.resize(frame)           # a malformed frame raises: not counted
         obs = Observation(frame, self.frame_index, t0, timings)
         self.frame_index += 1
         if img is None:                            # not finite: the next frame starts anew
             self._forget_view()
             timings['preprocess'] = time.perf_counter() - t0
             return obs
-        x = self._tensor(img)
+        x = self.features.tensor(img)
         if self.ego is not None:      # timed as preprocessing, re-encoding included
             obs.warp, obs.f_prev = self._follow_camera(img)
         if cfg.motion_source == 'image':
@@ -772,11 +335,11 @@ class SurpriseModel:
         warp = self.ego.estimate(prev_keys, keys, self.size)
         if warp is None or self.cfg.ego_warp != 'image':
             return warp, None
-        self.x_prev = self._tensor(egomotion.warp_image(img_prev, warp, img))
+        self.x_prev = self.features.tensor(egomotion.warp_image(img_prev, warp, img))
         if self.train_encoder and self.cfg.encoder_grad == 'both':   # `_encode` does it
             return warp, None
         with torch.no_grad():
-            return warp, self._features(self.frozen_encoder, self.x_prev)[0]
+            return warp, self.features.of(self.x_prev)[0]
 
     def _move_memory(self, warp: np.ndarray) -> None:
         """Move the predictor's state and the past maps into the new view."""
@@ -928,16 +491,3 @@ def _clone_tree(obj: Any) -> Any:
     if isinstance(obj, list):
         return [_clone_tree(v) for v in obj]
     return obj
-
-
-def _has_batchnorm(module: nn.Module) -> bool:
-    return any(isinstance(m, nn.modules.batchnorm._BatchNorm) for m in module.modules())
-
-
-def _check_frame(frame: Any) -> None:
-    if not isinstance(frame, np.ndarray):
-        raise FrameError(f'frame must be a numpy array, got {type(frame).__name__}')
-    if frame.ndim != 3 or frame.shape[2] != 3 or frame.shape[0] < 1 or frame.shape[1] < 1:
-        raise FrameError(f'frame must be (H, W, 3) RGB, got shape {frame.shape}')
-    if frame.dtype != np.uint8 and frame.dtype not in (np.float32, np.float64):
-        raise FrameError(f'frame must be uint8 (or float 0..255) RGB, got {frame.dtype}')

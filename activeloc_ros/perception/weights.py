@@ -451,7 +451,8 @@ def prepare_default_int8(cache: Path | None, fetched: Sequence[str]) -> None:
     """Build the default configuration's int8 encoder (`perception.int8`) into the cache
     now, if its weights were fetched, so the graph's first start does not wait for it."""
     from activeloc_ros.perception import int8
-    from activeloc_ros.perception.model import PerceptionConfig, SurpriseModel
+    from activeloc_ros.perception.config import PerceptionConfig
+    from activeloc_ros.perception.model import SurpriseModel
     if PerceptionConfig.encoder not in fetched:
         return
     if not int8.available():

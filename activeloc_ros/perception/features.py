@@ -1,0 +1,186 @@
+"""The encoder's side of the model: frames in, the g x g grid of C-d features out.
+
+`Features` owns the CNN encoder (`perception.encoders`), the arithmetic it runs in
+(float32, bfloat16 or OpenVINO int8, `perception.int8`), the mirrored border round its input
+(`encoder_pad`) and the per-frame scaling of its output (`feature_norm`). It keeps no memory
+of earlier frames: that is `perception.model.SurpriseModel`'s.
+"""
+import copy
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+from torch import nn
+import torch.nn.functional as F
+
+from activeloc_ros.errors import ConfigError, FrameError
+from activeloc_ros.perception.config import PerceptionConfig
+
+
+# torch's probes of the instruction sets that decide the encoder's speed (private in 2.13)
+CPU_FEATURES = (('AVX2', '_is_avx2_supported'), ('AVX512', '_is_avx512_supported'),
+                ('VNNI', '_is_vnni_supported'), ('AVX512_BF16', '_is_avx512_bf16_supported'),
+                ('AMX', '_is_amx_tile_supported'))
+
+
+def cpu_flags() -> list[str]:
+    """Which of `CPU_FEATURES` this CPU has."""
+    return [name for name, probe in CPU_FEATURES
+            if bool(getattr(torch.cpu, probe, lambda: False)())]
+
+
+def fast_bfloat16() -> bool:
+    """Does this CPU compute in bfloat16 natively: AMX tiles (Intel Sapphire Rapids on) or
+    AVX512_BF16 dot products (AMD Zen 4 on, Intel Cooper Lake)? There bfloat16 convolutions
+    run faster than float32; elsewhere they are emulated and slower."""
+    return bool({'AMX', 'AVX512_BF16'} & set(cpu_flags()))
+
+
+def _resolve(precision: str) -> str:
+    """The precision 'auto' stands for on this CPU."""
+    if precision == 'auto':
+        return 'bfloat16' if fast_bfloat16() else 'float32'
+    return precision
+
+
+def resolve_precision(precision: str) -> str:
+    """The precision 'auto' stands for on this CPU (int8 is `Features`' own choice)."""
+    if precision == 'auto':
+        return 'bfloat16' if fast_bfloat16() else 'float32'
+    return precision
+
+
+class Features:
+    """The encoder of a configuration, ready to run.
+
+    :param cfg: the configuration.
+    :param encoder: an already built encoder to use instead of `build_encoder(cfg...)`.
+    :param train: the encoder learns online (its weights are then not folded or cast).
+    """
+
+    def __init__(self, cfg: PerceptionConfig, *, encoder: nn.Module | None = None,
+                 train: bool = False):
+        self.cfg = cfg
+        self.train = train
+        if encoder is None:
+            from activeloc_ros.perception.encoders import build_encoder
+            encoder = build_encoder(cfg.encoder, weights=cfg.weights or None,
+                                    pretrained=cfg.pretrained, classifier=False)
+        # eval mode always: BatchNorm statistics of one frame are meaningless; the weights
+        # still learn when `train`
+        self.encoder = encoder.eval()
+        if cfg.channels_last:
+            self.encoder = self.encoder.to(memory_format=torch.channels_last)
+        self.encoder.requires_grad_(train)
+        # a frozen encoder runs with BatchNorm folded into its convs (same maps, cheaper);
+        # `encoder` keeps the unfolded weights for checkpoints
+        self.frozen_encoder = self.encoder
+        if cfg.fold_bn and not train and _has_batchnorm(self.encoder):
+            from activeloc_ros.perception.encoders import fold_batchnorm
+            self.frozen_encoder = fold_batchnorm(self.encoder)
+        precision = resolve_precision(cfg.encoder_precision)
+        if cfg.encoder_precision == 'auto' and not train and cfg.pretrained:
+            from activeloc_ros.perception import int8   # (random weights: not worth a build)
+            if int8.available():
+                precision = 'int8'
+        if precision == 'int8' and train:
+            raise ConfigError("perception parameter 'encoder_precision' int8 needs a frozen "
+                              'encoder (update_encoder false)')
+        self.precision = precision                              # in use
+        if precision == 'bfloat16' and not train:
+            # cast the weights once: autocast would cast them again on every frame
+            if self.frozen_encoder is self.encoder:
+                self.frozen_encoder = copy.deepcopy(self.encoder)
+            self.frozen_encoder = self.frozen_encoder.to(torch.bfloat16)
+        self.size = int(encoder.input_size)
+        self.channels = int(encoder.channels)
+        with torch.inference_mode():                            # the grid the encoder makes
+            zeros = torch.zeros(1, 3, self.size, self.size)
+            probe = self._run(self.frozen_encoder, self.encoder.preprocess(zeros))
+        self.grid = int(probe.shape[-1])                        # 14 at 224
+        self.cells = self.grid * probe.shape[-2]
+        stride = self.size // self.grid                         # 16 for the 14x14 grid
+        if cfg.encoder_pad % stride or cfg.encoder_pad >= self.size:
+            raise ConfigError(f"perception parameter 'encoder_pad' must be a multiple of the "
+                              f'encoder stride {stride} below {self.size}, got '
+                              f'{cfg.encoder_pad}')
+        if precision == 'int8':
+            from activeloc_ros.perception import int8, weights
+            side = self.size + 2 * cfg.encoder_pad
+            self.frozen_encoder = int8.load(
+                self.frozen_encoder, name=cfg.encoder, input_shape=(1, 3, side, side),
+                prepare=lambda rgb: self.padded(self.tensor(self.resize(rgb))),
+                threads=torch.get_num_threads(), cache=weights.cache_dir())
+
+    def preprocess(self, frame: np.ndarray) -> torch.Tensor | None:
+        """(H, W, 3) RGB 0..255 -> (1, 3, S, S) normalised encoder input; None if not finite."""
+        img = self.resize(frame)
+        return None if img is None else self.tensor(img)
+
+    def resize(self, frame: np.ndarray) -> np.ndarray | None:
+        """(H, W, 3) RGB 0..255 -> (S, S, 3) encoder-sized image; None if not finite."""
+        _check_frame(frame)
+        img = frame
+        if frame.dtype != np.uint8:
+            if not np.isfinite(frame).all():
+                return None
+            img = frame.astype(np.float32, copy=False)
+        h, w = img.shape[:2]
+        shrink = h >= self.size and w >= self.size
+        img = cv2.resize(img, (self.size, self.size),
+                         interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+        if self.cfg.blur_ksize:
+            img = cv2.GaussianBlur(img, (self.cfg.blur_ksize,) * 2, 0)
+        return img
+
+    def tensor(self, img: np.ndarray) -> torch.Tensor:
+        """(S, S, 3) encoder-sized image -> (1, 3, S, S) normalised encoder input."""
+        x = torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1)[None].float()
+        x = self.encoder.preprocess(x)                          # (1, 3, S, S)
+        if self.cfg.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
+        return x
+
+    def of(self, x: torch.Tensor, *, learning: bool = False) -> torch.Tensor:
+        """(B, 3, S, S) -> (B, N, C) float32 features, computed at `precision` by the frozen
+        encoder, or with `learning` by the encoder whose weights learn (under autograd)."""
+        encoder = self.encoder if learning else self.frozen_encoder
+        return self.to_cells(self._forward(encoder, x))
+
+    def _forward(self, encoder: nn.Module, x: torch.Tensor) -> torch.Tensor:
+        crop = self.cfg.encoder_pad * self.grid // self.size   # cells the padding adds
+        f = self._run(encoder, self.padded(x))
+        return f[..., crop:f.shape[-2] - crop, crop:f.shape[-1] - crop]
+
+    def padded(self, x: torch.Tensor) -> torch.Tensor:
+        pad = self.cfg.encoder_pad
+        return F.pad(x, (pad,) * 4, mode='reflect') if pad else x
+
+    def _run(self, encoder: nn.Module, x: torch.Tensor) -> torch.Tensor:
+        if self.precision in ('float32', 'int8'):
+            return encoder(x)
+        if encoder is self.frozen_encoder and not self.train:  # bfloat16 weights
+            return encoder(x.to(torch.bfloat16)).float()
+        with torch.autocast('cpu', dtype=torch.bfloat16):
+            return encoder(x).float()
+
+    def to_cells(self, f: torch.Tensor) -> torch.Tensor:
+        """(B, C, g, g) encoder output -> (B, N, C), scaled as `feature_norm` says."""
+        f = f.flatten(2).transpose(1, 2)
+        if self.cfg.feature_norm == 'frame_rms':
+            f = f / (f.square().mean(dim=(1, 2), keepdim=True).sqrt() + 1e-6)
+        return f
+
+
+def _has_batchnorm(module: nn.Module) -> bool:
+    return any(isinstance(m, nn.modules.batchnorm._BatchNorm) for m in module.modules())
+
+
+def _check_frame(frame: Any) -> None:
+    if not isinstance(frame, np.ndarray):
+        raise FrameError(f'frame must be a numpy array, got {type(frame).__name__}')
+    if frame.ndim != 3 or frame.shape[2] != 3 or frame.shape[0] < 1 or frame.shape[1] < 1:
+        raise FrameError(f'frame must be (H, W, 3) RGB, got shape {frame.shape}')
+    if frame.dtype != np.uint8 and frame.dtype not in (np.float32, np.float64):
+        raise FrameError(f'frame must be uint8 (or float 0..255) RGB, got {frame.dtype}')

@@ -1,0 +1,110 @@
+"""The predictor and its losses: what the paper's Sec. 3.2 defines, with no state of its own.
+
+`Predictor` maps each cell's features to its predicted next features (attention and stacked
+LSTMs, all cells one batch); the functions below weigh its error by the motion, score it
+(L_global, L_attn), turn the per-cell error into the surprise map and read the action's
+location off the map. `perception.model.SurpriseModel` runs them online, one frame a step.
+"""
+import torch
+from torch import nn
+
+from activeloc_ros.errors import ConfigError
+from activeloc_ros.perception.config import PerceptionConfig
+
+
+class Predictor(nn.Module):
+    """Per-cell Bahdanau attention and stacked LSTMs; all cells share the weights."""
+
+    def __init__(self, cfg: PerceptionConfig, channels: int):
+        super().__init__()
+        if cfg.head == 'none' and cfg.hidden != channels:
+            raise ConfigError(f"perception parameter 'head' none needs hidden == encoder "
+                              f'channels ({channels}), got hidden={cfg.hidden}')
+        self.hidden = cfg.hidden
+        self.layers = cfg.layers
+        self.rescale = cfg.attn_rescale
+        self.w1 = nn.Linear(channels, cfg.attn_units)
+        self.w2 = nn.Linear(cfg.hidden, cfg.attn_units, bias=False)
+        self.v = nn.Linear(cfg.attn_units, 1, bias=False)
+        # one matmul per LSTM: gates (i, f, g, o) of [input, h_prev], as torch.nn.LSTM
+        sizes = [channels] + [cfg.hidden] * (cfg.layers - 1)
+        self.cells = nn.ModuleList(nn.Linear(n + cfg.hidden, 4 * cfg.hidden) for n in sizes)
+        self.head = nn.Linear(cfg.hidden, channels) if cfg.head == 'linear' else nn.Identity()
+        self.residual = cfg.residual
+        if cfg.residual and cfg.head == 'linear':
+            nn.init.zeros_(self.head.weight)
+            nn.init.zeros_(self.head.bias)
+
+    def initial_state(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        zeros = torch.zeros(self.layers, n, self.hidden)
+        return zeros, zeros.clone()                             # (L, N, H) each
+
+    def forward(self, f: torch.Tensor, state: tuple[torch.Tensor, torch.Tensor]
+                ) -> tuple[torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+        """Predict each cell's next feature from its current one.
+
+        :param f: (N, C) features of the N cells.
+        :param state: (h, c), each (L, N, H), after the previous frame.
+        :return: fhat (N, C), attention (N,) summing to 1, the new (h, c).
+        """
+        h_prev, c_prev = state
+        score = torch.tanh(self.w1(f) + self.w2(h_prev[-1]))   # (N, A)
+        alpha = torch.softmax(self.v(score).squeeze(1), dim=0)  # (N,) over the cells
+        x = alpha[:, None] * f                                  # (N, C)
+        if self.rescale:
+            x = x * f.shape[0]
+        hs, cs = [], []
+        for i, cell in enumerate(self.cells):
+            gates = cell(torch.cat([x, h_prev[i]], dim=1))      # (N, 4H)
+            ig, fg, gg, og = gates.chunk(4, dim=1)
+            c = torch.sigmoid(fg) * c_prev[i] + torch.sigmoid(ig) * torch.tanh(gg)
+            x = torch.sigmoid(og) * torch.tanh(c)               # (N, H)
+            hs.append(x)
+            cs.append(c)
+        fhat = self.head(x)                                     # (N, C)
+        if self.residual:
+            fhat = fhat + f
+        return fhat, alpha, (torch.stack(hs), torch.stack(cs))
+
+
+def motion_weight(diff: torch.Tensor, kind: str, scale: float) -> torch.Tensor:
+    """Weight of each feature's prediction error by its motion `diff` = f_t - f_{t-1}."""
+    if kind == 'abs_sigmoid':
+        return 2.0 * torch.sigmoid(diff.abs() / scale) - 1.0
+    if kind == 'sigmoid':
+        return torch.sigmoid(diff / scale)
+    if kind == 'raw':
+        return diff.square()
+    return torch.ones_like(diff)
+
+
+def global_error(f_next: torch.Tensor, fhat: torch.Tensor, weight: torch.Tensor, *,
+                 reduction: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """L_global and the per-cell error e (channel mean), from (N, C) tensors."""
+    err = weight * (f_next - fhat).square()                     # (N, C)
+    loss = err.mean() if reduction == 'mean' else err.sum()
+    return loss, err.mean(dim=1)                                # (), (N,)
+
+
+def attention_loss(alpha: torch.Tensor, target: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
+    """Paper Eq. 3: attention (N,) against the previous surprise map (N,), on features (N, C)."""
+    gap = alpha - target                                        # (N,)
+    return torch.linalg.vector_norm(gap) + torch.linalg.vector_norm(gap[:, None] * f)
+
+
+def surprise_map(e: torch.Tensor, temperature: float) -> torch.Tensor:
+    return torch.softmax(e / temperature, dim=0)                # (N,)
+
+
+def action_location(grid: torch.Tensor, kind: str, share: float) -> tuple[float, float]:
+    """(x, y) of the action on a (rows, cols) map, in cells (0.5 = the first cell's centre):
+    'peak' the argmax cell's centre; 'mass' the map-weighted centroid of the cells that
+    reach `share` of the peak."""
+    rows, cols = grid.shape
+    if kind == 'peak':
+        row, col = divmod(int(torch.argmax(grid)), cols)
+        return col + 0.5, row + 0.5
+    weight = torch.where(grid >= share * grid.max(), grid, torch.zeros(()))
+    ys, xs = torch.meshgrid(torch.arange(rows) + 0.5, torch.arange(cols) + 0.5, indexing='ij')
+    total = weight.sum()
+    return float((weight * xs).sum() / total), float((weight * ys).sum() / total)
