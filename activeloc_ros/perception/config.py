@@ -1,7 +1,8 @@
 """Every choice of the perception model: `PerceptionConfig`, built from ROS parameters or YAML.
 
-The nodes' parameter tables and `params/perception.yaml` are generated from its fields'
-help strings (`perception_node.model_params`); the model's modules read nothing else.
+The perception node declares one ROS parameter per field, with the field's help string
+(`perception_node.model_params`); `params/perception.yaml` repeats the defaults. What each
+default was measured against is in the README (Measured defaults), not in the help strings.
 """
 import dataclasses
 from dataclasses import dataclass, field
@@ -35,17 +36,16 @@ class PerceptionConfig:
         'vgg19',
         'CNN encoder to the 14x14 grid. Default vgg19 to pool4: the closest stand-in for the '
         'paper\'s vgg16 pool4 whose ImageNet weights the registries hold; vgg16 needs '
-        '`weights`; efficientnet_lite0 is ~17x cheaper in float32, 3.5x in bfloat16 '
-        '(bench screen, static sequences: AAE 16.0 deg vs vgg19\'s 13.3)', one_of(*ENCODER_NAMES))
+        '`weights`; efficientnet_lite0 is far cheaper and less accurate (README, Measured '
+        'defaults)', one_of(*ENCODER_NAMES))
     weights: str = _param('', 'encoder weights file; empty = the package weight cache')
     encoder_precision: str = _param(
         'auto', 'arithmetic of the encoder\'s forward pass: float32; bfloat16 (features '
         'within ~1% of float32; faster where the CPU computes it natively, slower where it is '
         'emulated); int8 (OpenVINO, quantised once by NNCF on the sample bag, see '
         'perception.int8; a frozen encoder only); auto = int8 for a frozen ImageNet '
-        'encoder, else bfloat16 where the CPU has AMX or AVX512_BF16, else float32 (bench '
-        'screen, 5 static dev sequences, seeds 0-2: mean AAE 10.23 deg in int8, 10.64 in '
-        'bfloat16, 10.25 in float32)', one_of(*ENCODER_PRECISIONS))
+        'encoder, else bfloat16 where the CPU has AMX or AVX512_BF16, else float32',
+        one_of(*ENCODER_PRECISIONS))
     encoder_pad: int = _param(
         32, 'pixels of mirrored picture added round the encoder input, whose extra feature '
         'cells are cut off again: the border cells then see picture, not the zero padding '
@@ -120,22 +120,18 @@ class PerceptionConfig:
     location: str = _param(
         'mass', 'where the action is: peak = the centre of the map\'s argmax cell (paper); '
         'mass = the centroid of the cells that reach location_share of the peak, which '
-        'follows a group rather than the one cell of it that is most surprising this frame '
-        '(bench screen, 5 static dev sequences, faithful rig: mean AAE 18.34 deg with peak, '
-        '11.12 +- 0.25 over 3 seeds with mass 0.25: lower on 4 of the 5, higher on vot_ball1, '
-        '10.35 -> 12.5)',
+        'follows a group rather than the one cell of it that is most surprising this frame',
         one_of('peak', 'mass'))
     location_share: float = _param(
-        0.25, 'with location mass, the share of the peak value a cell needs to count (same '
-        'benchmark, seed 0: 0 -> 13.45 deg, 0.1 -> 12.21, 0.25 -> 10.87, 0.5 -> 15.29, '
-        '0.75 -> 17.93)', in_range(0.0, 1.0))
+        0.25, 'with location mass, the share of the peak value a cell needs to count',
+        in_range(0.0, 1.0))
     loss_reduction: str = _param(
         'mean', 'L_global over cells and channels: mean or sum', one_of('mean', 'sum'))
     # online learning
     learn: bool = _param(True, 'one optimiser step per frame; False = predict only')
     update_encoder: bool = _param(
         False, 'also train the encoder online (paper: True; it costs 2 encoder backward '
-        'passes per frame, ~5x the frozen step with efficientnet_lite0 on 2 CPU cores)')
+        'passes per frame)')
     encoder_grad: str = _param(
         'both', 'with update_encoder, the encoder gradient flows through both the '
         'predictor\'s input and the target (exact; re-encodes the previous frame) or through '
@@ -167,7 +163,7 @@ class PerceptionConfig:
     channels_last: bool = _param(True, 'channels-last memory format for the encoder')
     fold_bn: bool = _param(
         True, 'run a frozen encoder with BatchNorm folded into its convs (same features, '
-        'about 30% cheaper for efficientnet_lite0)')
+        'cheaper)')
     compile: bool = _param(False, 'torch.compile the predictor (slow first frames)')
 
     def __post_init__(self) -> None:
