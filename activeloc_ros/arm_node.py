@@ -21,7 +21,6 @@ import math
 import threading
 import time
 
-from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration
@@ -36,6 +35,7 @@ from activeloc_ros.control import clamp_to_limits, pose_problem, JOINT_NAMES, Si
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.serial_link import BraccioLink
 from activeloc_ros.errors import ConfigError
+from activeloc_ros.messages import joint_state, stamp_ns, time_from_ns
 from activeloc_ros.ros_params import declare, Param, run
 
 HOME = [90, 90, 45, 45, 90, 73]
@@ -226,14 +226,12 @@ class ArmNode(Node):
                                       f'({self.clamped} so far)', throttle_duration_sec=5.0)
         self._send(safe)
         if self.sim_time:
-            self._publish_state(self.joints(), Time(sec=(self._tick_ns or 0) // 10**9,
-                                                    nanosec=(self._tick_ns or 0) % 10**9))
+            self._publish_state(self.joints(), time_from_ns(self._tick_ns or 0))
 
     def on_clock(self, msg: ClockMsg) -> None:
         """Simulated time: move to the tick and answer it with the state there."""
         with self._lock:
-            self._tick_ns = max(self._tick_ns or 0,
-                                msg.clock.sec * 10**9 + msg.clock.nanosec)
+            self._tick_ns = max(self._tick_ns or 0, stamp_ns(msg.clock))
             joints = self.joints()
         self._publish_state(joints, msg.clock)
 
@@ -310,11 +308,7 @@ class ArmNode(Node):
             self._publish_state(joints, self.get_clock().now().to_msg())
 
     def _publish_state(self, joints, stamp) -> None:
-        msg = JointState()
-        msg.header.stamp = stamp
-        msg.name = list(JOINT_NAMES)
-        msg.position = [math.radians(q) for q in joints]
-        self.publisher.publish(msg)
+        self.publisher.publish(joint_state(joints, stamp))
 
     # -- stopping on purpose ---------------------------------------------------------------
 

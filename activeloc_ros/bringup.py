@@ -43,6 +43,7 @@ import numpy as np
 import yaml
 
 from activeloc_ros.errors import ActivelocError, ConfigError, SourceError
+from activeloc_ros.messages import stamp_s
 from activeloc_ros.paths import share_path
 from activeloc_ros.screen import AIM_LIMITS
 from activeloc_ros.sources import default_bag
@@ -337,7 +338,7 @@ class Monitor:
 
     def on_info(self, msg):
         self.image_size = (msg.width, msg.height)
-        stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        stamp = stamp_s(msg.header.stamp)
         self.sim_time = max(self.sim_time, stamp)
         self._stamp(self.frames)
 
@@ -345,7 +346,7 @@ class Monitor:
         self.location = (msg.point.x, msg.point.y)
 
     def on_command(self, msg):
-        sent = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        sent = stamp_s(msg.header.stamp)
         if sent > 0 and not self.lockstep:
             now = self.node.get_clock().now().nanoseconds * 1e-9
             with self.lock:

@@ -21,11 +21,11 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import CameraInfo, Image, JointState
 
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
-from activeloc_ros.control import JOINT_NAMES
 from activeloc_ros.controller_node import MAPPING_PARAMS, mapping_from
 from activeloc_ros.errors import ConfigError, SourceError
 from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.lockstep import IDLE, Lockstep
+from activeloc_ros.messages import arm_joints_deg, stamp_ns, time_from_ns, time_from_s
 from activeloc_ros.ros_params import declare, Param, run
 from activeloc_ros.screen import ScreenConfig, VirtualScreen
 from activeloc_ros.sources import default_bag, open_source, Pacer, pinhole_matrix
@@ -96,14 +96,6 @@ PARAMS = [
             read_only=True) for name, field in SCREEN_FIELDS.items()),
     *MAPPING_PARAMS,
 ]
-
-
-def _ns(stamp) -> int:
-    return stamp.sec * 10**9 + stamp.nanosec
-
-
-def _time(ns: int) -> Time:
-    return Time(sec=ns // 10**9, nanosec=ns % 10**9)
 
 
 class CameraNode(Node):
@@ -179,25 +171,22 @@ class CameraNode(Node):
     # -- inputs of a virtual camera --------------------------------------------------------
 
     def on_joint_states(self, msg: JointState) -> None:
-        index = {name: i for i, name in enumerate(msg.name)}
-        if len(msg.position) != len(msg.name) or any(n not in index for n in JOINT_NAMES):
-            return
-        joints = [math.degrees(msg.position[index[n]]) for n in JOINT_NAMES]
-        if not all(math.isfinite(q) for q in joints):
+        joints = arm_joints_deg(msg)
+        if joints is None or not all(math.isfinite(q) for q in joints):
             return
         if self.lockstep is not None:
-            self.lockstep.on_state(_ns(msg.header.stamp), joints)
+            self.lockstep.on_state(stamp_ns(msg.header.stamp), joints)
         else:
             self.source.set_joints(joints)
 
     def on_location(self, msg: PointStamped) -> None:
-        self.lockstep.on_location(_ns(msg.header.stamp), time.monotonic())
+        self.lockstep.on_location(stamp_ns(msg.header.stamp), time.monotonic())
 
     def on_command(self, msg: JointState) -> None:
-        self.lockstep.on_command(_ns(msg.header.stamp))
+        self.lockstep.on_command(stamp_ns(msg.header.stamp))
 
     def on_ignored(self, msg: PointStamped) -> None:
-        self.lockstep.on_ignored(_ns(msg.header.stamp))
+        self.lockstep.on_ignored(stamp_ns(msg.header.stamp))
 
     # -- frames ----------------------------------------------------------------------------
 
@@ -235,7 +224,7 @@ class CameraNode(Node):
         elif action == 'render':
             if step.pose is not None:
                 self.source.set_joints(step.pose)
-            self.publish(self.pending, stamp=_time(step.t_ns))
+            self.publish(self.pending, stamp=time_from_ns(step.t_ns))
             self.pending = None
             step.rendered(now)
         elif action == 'next':
@@ -246,7 +235,7 @@ class CameraNode(Node):
                 self._finish('max_frames reached')
 
     def _publish_clock(self, t_ns: int) -> None:
-        self.clock_pub.publish(ClockMsg(clock=_time(t_ns)))
+        self.clock_pub.publish(ClockMsg(clock=time_from_ns(t_ns)))
 
     def _graph_ready(self) -> bool:
         """Lockstep needs perception, the controller and the arm before the first tick."""
@@ -294,7 +283,7 @@ class CameraNode(Node):
         if stamp is None and self.params['restamp']:
             stamp = self.get_clock().now().to_msg()
         elif stamp is None:
-            stamp = Time(sec=int(frame.stamp), nanosec=int(round(frame.stamp % 1 * 1e9)) % 10**9)
+            stamp = time_from_s(frame.stamp)
         image = Image(**rgb_to_image_fields(frame.rgb, self.params['encoding']))
         image.header.stamp = stamp
         image.header.frame_id = self.params['frame_id']

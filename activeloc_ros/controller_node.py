@@ -24,6 +24,7 @@ from activeloc_ros.control import (
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.pd import DERIVATIVE_MODES
 from activeloc_ros.errors import ConfigError
+from activeloc_ros.messages import arm_joints_deg, joint_state, stamp_s
 from activeloc_ros.ros_params import declare, Param, run
 
 
@@ -120,10 +121,6 @@ def check_change(values: dict, changed: set) -> 'str | None':
     return None
 
 
-def _seconds(stamp) -> float:
-    return stamp.sec + stamp.nanosec * 1e-9
-
-
 class ControllerNode(Node):
 
     def __init__(self, **kwargs):
@@ -211,16 +208,14 @@ class ControllerNode(Node):
             self._on_joint_states(msg)
 
     def _on_joint_states(self, msg: JointState) -> None:
-        index = {name: i for i, name in enumerate(msg.name)}
-        if len(msg.position) != len(msg.name) or any(n not in index for n in JOINT_NAMES):
+        joints = arm_joints_deg(msg)   # the core ignores poses that are not finite
+        if joints is None:
             self._malformed_states += 1
             self.get_logger().warning(
                 f'ignored joint states without the six joints by name ('
                 f'{self._malformed_states} so far)', throttle_duration_sec=5.0)
             return
-        # the core ignores poses that are not finite (1e308 rad is inf degrees)
-        joints = [math.degrees(msg.position[index[n]]) for n in JOINT_NAMES]
-        t = _seconds(msg.header.stamp) or self._now()
+        t = stamp_s(msg.header.stamp) or self._now()
         self.core.observe_joints(joints, t)
 
     def on_location(self, msg: PointStamped) -> None:
@@ -228,7 +223,7 @@ class ControllerNode(Node):
             if self.stopped:
                 return
             now = self._now()
-            t_capture = _seconds(msg.header.stamp) or now
+            t_capture = stamp_s(msg.header.stamp) or now
             if self.sim_time:
                 # the frame's clock tick may reach this node after its location; in
                 # simulated time a command is never made before its frame (closed_loop)
@@ -252,11 +247,7 @@ class ControllerNode(Node):
     # -- outputs ---------------------------------------------------------------------------
 
     def _publish(self, joints_deg, stamp) -> None:
-        msg = JointState()
-        msg.header.stamp = stamp
-        msg.name = list(JOINT_NAMES)
-        msg.position = [math.radians(q) for q in joints_deg]
-        self.publisher.publish(msg)
+        self.publisher.publish(joint_state(joints_deg, stamp))
 
     def stop_on_purpose(self) -> None:
         """Stop the arm where it is, on purpose, make sure the command went out, and send

@@ -1,0 +1,52 @@
+"""Conversions between the ROS messages the nodes exchange and the core's plain values, in
+the spirit of cv_bridge (images: `images`).
+
+Stamps: a `builtin_interfaces/Time` (or anything with `sec` and `nanosec`) to and from
+integer nanoseconds or float seconds. Joints: `sensor_msgs/JointState` carries radians; the
+core works in degrees. Reading needs no ROS; the message types are imported only to build
+messages.
+"""
+import math
+from typing import Sequence
+
+from activeloc_ros.control import JOINT_NAMES
+
+
+def stamp_ns(stamp) -> int:
+    """Integer nanoseconds of a stamp."""
+    return stamp.sec * 10**9 + stamp.nanosec
+
+
+def stamp_s(stamp) -> float:
+    """Float seconds of a stamp."""
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def time_from_ns(ns: int):
+    """A builtin_interfaces/Time of integer nanoseconds."""
+    from builtin_interfaces.msg import Time
+    return Time(sec=ns // 10**9, nanosec=ns % 10**9)
+
+
+def time_from_s(t: float):
+    """A builtin_interfaces/Time of float seconds, to the nearest nanosecond."""
+    return time_from_ns(round(t * 1e9))
+
+
+def joint_state(joints_deg: Sequence[float], stamp=None):
+    """A sensor_msgs/JointState of the six Braccio joints at ``joints_deg`` (radians on the
+    wire), stamped with ``stamp``."""
+    from sensor_msgs.msg import JointState
+    msg = JointState(name=list(JOINT_NAMES), position=[math.radians(q) for q in joints_deg])
+    if stamp is not None:
+        msg.header.stamp = stamp
+    return msg
+
+
+def arm_joints_deg(msg) -> list[float] | None:
+    """The six Braccio joints in degrees, in `JOINT_NAMES` order, from a JointState that
+    names them all (in any order, among others); None if it does not."""
+    index = {name: i for i, name in enumerate(msg.name)}
+    if len(msg.position) != len(msg.name) or any(n not in index for n in JOINT_NAMES):
+        return None
+    return [math.degrees(msg.position[index[n]]) for n in JOINT_NAMES]

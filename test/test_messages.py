@@ -1,0 +1,38 @@
+"""The message conversions every node shares (`activeloc_ros.messages`)."""
+import math
+
+import pytest
+from sensor_msgs.msg import JointState
+
+from activeloc_ros.control import JOINT_NAMES
+from activeloc_ros.messages import (
+    arm_joints_deg, joint_state, stamp_ns, stamp_s, time_from_ns, time_from_s)
+
+
+def test_stamps_round_trip_in_nanoseconds_and_seconds():
+    stamp = time_from_ns(12_345_678_901)
+    assert (stamp.sec, stamp.nanosec) == (12, 345_678_901)
+    assert stamp_ns(stamp) == 12_345_678_901
+    assert stamp_s(stamp) == pytest.approx(12.345678901)
+    # to the nearest nanosecond: 3.9999999999 s is 4 s (cut into sec and nanosec parts
+    # separately, it was 3 s and a nanosec part rounded to 0)
+    assert stamp_ns(time_from_s(3.9999999999)) == 4_000_000_000
+    assert stamp_ns(time_from_s(1.25)) == 1_250_000_000
+
+
+def test_joint_states_carry_radians_and_are_read_back_by_name():
+    pose = [90.0, 80.0, 45.0, 30.0, 90.0, 73.0]
+    msg = joint_state(pose, time_from_ns(5))
+    assert list(msg.name) == list(JOINT_NAMES) and stamp_ns(msg.header.stamp) == 5
+    assert msg.position[0] == pytest.approx(math.pi / 2)
+    assert arm_joints_deg(msg) == pytest.approx(pose)
+    shuffled = JointState(name=list(reversed(msg.name)) + ['extra'],
+                          position=list(reversed(msg.position)) + [0.0])
+    assert arm_joints_deg(shuffled) == pytest.approx(pose)        # any order, extras ignored
+
+
+def test_a_joint_state_without_all_six_joints_is_none():
+    msg = joint_state([90.0] * 6)
+    assert arm_joints_deg(JointState(name=list(msg.name)[:5],
+                                     position=list(msg.position)[:5])) is None
+    assert arm_joints_deg(JointState(name=list(msg.name), position=[0.0])) is None
