@@ -44,8 +44,9 @@ from activeloc_ros.paths import write_atomic
 from activeloc_ros.progress import Progress
 
 GRID = (14, 14)
-# Paper Table 3 rows, as PerceptionConfig overrides (see `_ablation_overrides`).
-ABLATIONS = ('full', 'predlearn', 'no_norm_motion', 'no_attn')
+# Paper Table 3 rows of the perception (`bench.pointers.ABLATIONS`); the encoder rows are
+# chosen with --encoder here.
+ABLATIONS = tuple(name for name, fields in MODEL_ROWS.items() if 'encoder' not in fields)
 
 
 class Method(Protocol):
