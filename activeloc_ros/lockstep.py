@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Sequence
 
 from activeloc_ros.errors import ConfigError
+from activeloc_ros.world import frame_time
 
 POSE_TOPIC = '/camera/pose'   # the virtual camera's (pan, tilt) at each frame's stamp
 IDLE, POSE, ANSWER, APPLIED = 'idle', 'pose', 'answer', 'applied'
@@ -38,8 +39,8 @@ LATE_COMMAND = "a command for an earlier frame (applied later than closed_loop's
 
 
 def time_ns(index: int, fps: float) -> int:
-    """Simulated time of scene frame ``index``, integer nanoseconds (t_0 = 0)."""
-    return round(index * 1e9 / fps)
+    """Simulated time of scene frame ``index`` (`world.frame_time`), integer nanoseconds."""
+    return round(frame_time(index, fps) * 1e9)
 
 
 class Lockstep:

@@ -29,6 +29,7 @@ from activeloc_ros.errors import DataError, FrameError, SourceError
 from activeloc_ros.images import decode_compressed, image_to_rgb
 from activeloc_ros.paths import share_path
 from activeloc_ros.screen import VirtualScreen
+from activeloc_ros.world import frame_time
 
 IMAGE_SUFFIXES = ('.jpg', '.jpeg', '.png', '.bmp', '.ppm', '.pgm', '.tif', '.tiff', '.webp')
 DEFAULT_SCENE_FPS = 10.0     # a scene that knows no rate of its own (a bag of one frame)
@@ -147,8 +148,8 @@ class VideoSource(Source):
                 raise SourceError(f'video {self.path} has no readable frame')
             return None
         self._index += 1
-        return Frame(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), (self._index - 1) / self.fps,
-                     self._index - 1)
+        return Frame(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB),
+                     frame_time(self._index - 1, self.fps), self._index - 1)
 
     def close(self) -> None:
         self._capture.release()
@@ -177,7 +178,7 @@ class FolderSource(Source):
             bgr = cv2.imread(str(file), cv2.IMREAD_COLOR)
             if bgr is not None:
                 return Frame(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB),
-                             (self._index - 1) / self.fps, self._index - 1)
+                             frame_time(self._index - 1, self.fps), self._index - 1)
         return None
 
 
@@ -272,7 +273,7 @@ class SequenceSource(Source):
             raise SourceError(f'bad sequence: {exc}') from exc
         if sample is None:
             return None
-        return Frame(sample.image, sample.index / self.fps, sample.index)
+        return Frame(sample.image, frame_time(sample.index, self.fps), sample.index)
 
     def close(self) -> None:
         if self._samples is not None:
@@ -313,7 +314,7 @@ class VirtualSource(Source):
         if frame is None:
             return None
         self._index += 1
-        return Frame(frame.rgb, (self._index - 1) / self.fps, self._index - 1)
+        return Frame(frame.rgb, frame_time(self._index - 1, self.fps), self._index - 1)
 
     def render(self, scene: Frame) -> Frame:
         """What the camera sees of a scene frame from the current pose."""

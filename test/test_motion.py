@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from activeloc_ros.bench.pointers import FrameDiffPointer, Mog2Pointer
-from activeloc_ros.closed_loop import View
+from activeloc_ros.world import View
 from activeloc_ros.perception import motion
 from test_trackers import SIZE, target
 

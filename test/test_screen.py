@@ -11,7 +11,7 @@ import pytest
 from activeloc_ros import data
 from activeloc_ros.bench import screen as bench
 from activeloc_ros.bench.pointers import CentrePointer, OraclePointer, RandomPointer
-from activeloc_ros.closed_loop import gaze_map, Pointing, run_episode
+from activeloc_ros.closed_loop import gaze_map, Pointing, run_episode, screen_world
 from activeloc_ros.control import angular_error, ControllerConfig
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.screen import ScreenConfig, VirtualScreen
@@ -141,9 +141,12 @@ def make_walker(root: Path, name: str = 'walker', n: int = 40, *, fps: float = 1
 
 
 def episode(seq: data.Sequence, pointer, mode: str = 'lockstep', **options):
-    return run_episode(((s.index, s.image, s.truth) for s in seq.frames()), pointer,
-                       fps=seq.fps, screen=VirtualScreen(ScreenConfig(width=320, height=240)),
-                       controller=ControllerConfig(settle_time=0.0), mode=mode, name=seq.name,
+    controller = ControllerConfig(settle_time=0.0)
+    camera_fps = options.pop('camera_fps', None)
+    world = screen_world(((s.index, s.image, s.truth) for s in seq.frames()), fps=seq.fps,
+                         screen=VirtualScreen(ScreenConfig(width=320, height=240)),
+                         controller=controller, camera_fps=camera_fps)
+    return run_episode(world, pointer, controller=controller, mode=mode, name=seq.name,
                        **options)
 
 

@@ -18,7 +18,7 @@ import tempfile
 import yaml
 
 from activeloc_ros.bench.pointers import ModelPointer
-from activeloc_ros.closed_loop import run_episode
+from activeloc_ros.closed_loop import run_episode, screen_world
 from activeloc_ros.data import FrameTruth
 from activeloc_ros.errors import ActivelocError
 from activeloc_ros.paths import share_path
@@ -57,9 +57,9 @@ def bench_poses(scene: str, frames: int) -> list[tuple[float, float, float]]:
     perception = node_settings('perception')
     fields = PerceptionConfig.descriptions()
     pointer = ModelPointer('ours', {k: v for k, v in perception.items() if k in fields})
-    episode = run_episode(scene_frames(), pointer, fps=fps, screen=VirtualScreen(),
-                          controller=config_from(control),
-                          mode='lockstep')
+    controller = config_from(control)
+    world = screen_world(scene_frames(), fps=fps, screen=VirtualScreen(), controller=controller)
+    episode = run_episode(world, pointer, controller=controller, mode='lockstep')
     source.close()
     return [(r.t, r.pan, r.tilt) for r in episode.records]
 

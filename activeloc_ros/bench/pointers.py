@@ -7,7 +7,8 @@ import cv2
 import numpy as np
 
 from activeloc_ros import metrics
-from activeloc_ros.closed_loop import Pointing, View
+from activeloc_ros.closed_loop import Pointing
+from activeloc_ros.world import View
 from activeloc_ros.errors import ConfigError
 
 # Paper Table 3 rows that change the perception (the controller rows are PD variants).

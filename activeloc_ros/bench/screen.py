@@ -34,7 +34,7 @@ from activeloc_ros.bench.video import H264Writer
 from activeloc_ros.bench.pointers import (
     ABLATIONS, CentrePointer, FrameDiffPointer, ModelPointer, Mog2Pointer, OraclePointer,
     RandomPointer, TrackerMethod)
-from activeloc_ros.closed_loop import FrameRecord, MODES, run_episode
+from activeloc_ros.closed_loop import FrameRecord, MODES, run_episode, screen_world
 from activeloc_ros.control import ControllerConfig, PD_VARIANTS, PDConfig
 from activeloc_ros.errors import ActivelocError, ConfigError, DataError
 from activeloc_ros.paths import write_atomic
@@ -155,11 +155,10 @@ def _run_job(job: dict) -> dict:
         try:
             limits = screen if job['aim_limits'] == 'screen' else None
             controller = controller_for(job['method'], job['control'], limits)
-            episode = run_episode(frames, pointer, fps=seq.fps, screen=screen,
-                                  controller=controller,
-                                  mode=job['mode'], camera_fps=job['camera_fps'] or None,
-                                  name=seq.name,
-                                  on_frame=video.add if video else None)
+            world = screen_world(frames, fps=seq.fps, screen=screen, controller=controller,
+                                 camera_fps=job['camera_fps'] or None)
+            episode = run_episode(world, pointer, controller=controller, mode=job['mode'],
+                                  name=seq.name, on_frame=video.add if video else None)
         except BaseException:
             if video:
                 video.abandon()
