@@ -6,8 +6,9 @@ world's camera image -> a pointer (the perception model, a tracker, a baseline) 
 nodes run.
 
 Time: scene frame i is shown at ``t_i = i / fps`` (`world.frame_time`, the scene's own
-rate) and the arm moves at its servos' speed. The camera captures at ``camera_fps`` (default: every scene frame);
-a capture sees the scene frame on the screen at that moment. Two modes:
+rate) and the arm moves at its servos' speed. The camera captures at ``camera_fps``
+(default: every scene frame); a capture sees the scene frame on the screen at that moment.
+Two modes:
 
 - ``lockstep``: every captured frame is processed and its command reaches the arm at its
   capture time (zero compute time); deterministic. The ROS graph reproduces it with a

@@ -9,10 +9,10 @@ on the virtual screen (`screen.VirtualScreen`), seen by a camera the simulated B
         world.act(joints, when)      # commands that reach the arm by t
         joints = world.advance(t)    # the arm moves to t
         view = world.observe()       # a camera capture, when one is due
-        record = world.score(...)    # the frame's scores
+        world.score(record, ...)     # the frame's scores
 """
-import math
 from dataclasses import dataclass
+import math
 from typing import Iterable, Iterator, Sequence
 
 import numpy as np

@@ -389,7 +389,8 @@ def test_an_untrained_residual_predictor_gives_the_motion_weighted_difference_ma
     model.step(a)
     got = model.step(b).surprise_map
     with torch.no_grad():
-        fa, fb = (model.features.to_cells(model.encoder(model.features.preprocess(x)))[0] for x in (a, b))
+        feats = model.features
+        fa, fb = (feats.to_cells(model.encoder(feats.preprocess(x)))[0] for x in (a, b))
     d = fb - fa
     e = (P.motion_weight(d, motion, 1.0) * d.square()).mean(1)
     want = torch.softmax(e / 0.5, 0).reshape(model.grid, model.grid).numpy()
