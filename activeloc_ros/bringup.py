@@ -166,18 +166,25 @@ def own_ros_args(args) -> list[str] | None:
     return ['--ros-args', *args.ros_args] if args.ros_args else None
 
 
+def camera_screen(files=()):
+    """The virtual screen a `virtual:` camera renders: the camera node's declared defaults,
+    overlaid with params/camera.yaml and then the user's params `files`."""
+    from activeloc_ros.ros_params import file_values
+    from activeloc_ros.camera_node import PARAMS, SCREEN_FIELDS
+    from activeloc_ros.screen import ScreenConfig, VirtualScreen
+    values = {p.name: p.default for p in PARAMS}
+    values.update(file_values('camera', [share_path('params/camera.yaml'), *files]))
+    return VirtualScreen(ScreenConfig(**{field: values[name]
+                                         for name, field in SCREEN_FIELDS.items()}))
+
+
 def screen_aim_limits(camera: str, files) -> dict[str, float]:
     """For a virtual camera, the controller's aim limits at which the view stays on the
     screen, as the screen benchmark sets them; limits set in the user's `files` win."""
     if not camera.startswith('virtual:'):
         return {}
     from activeloc_ros.ros_params import file_values
-    from activeloc_ros.camera_node import PARAMS, SCREEN_FIELDS
-    from activeloc_ros.screen import ScreenConfig, VirtualScreen
-    values = {p.name: p.default for p in PARAMS}
-    values.update(file_values('camera', [share_path('params/camera.yaml'), *files]))
-    screen = VirtualScreen(ScreenConfig(**{field: values[name]
-                                           for name, field in SCREEN_FIELDS.items()}))
+    screen = camera_screen(files)
     own = file_values('controller', files)
     return {name: limit
             for name, limit in zip(('pan_limit_deg', 'tilt_limit_deg'), screen.aim_limits_deg())

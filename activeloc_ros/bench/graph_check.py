@@ -18,12 +18,12 @@ import tempfile
 import yaml
 
 from activeloc_ros.bench.pointers import ModelPointer
+from activeloc_ros.bringup import camera_screen
 from activeloc_ros.closed_loop import run_episode, screen_world
 from activeloc_ros.data import FrameTruth
 from activeloc_ros.errors import ActivelocError
 from activeloc_ros.paths import share_path
 from activeloc_ros.ros_params import file_values
-from activeloc_ros.screen import VirtualScreen
 from activeloc_ros.sources import default_bag, open_scene
 
 
@@ -58,7 +58,8 @@ def bench_poses(scene: str, frames: int) -> list[tuple[float, float, float]]:
     fields = PerceptionConfig.descriptions()
     pointer = ModelPointer('ours', {k: v for k, v in perception.items() if k in fields})
     controller = config_from(control)
-    world = screen_world(scene_frames(), fps=fps, screen=VirtualScreen(), controller=controller)
+    # the screen the graph's camera renders (its packaged params), not a default one
+    world = screen_world(scene_frames(), fps=fps, screen=camera_screen(), controller=controller)
     episode = run_episode(world, pointer, controller=controller, mode='lockstep')
     source.close()
     return [(r.t, r.pan, r.tilt) for r in episode.records]
