@@ -31,14 +31,13 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
-from activeloc_ros.control import clamp_to_limits, pose_problem, JOINT_NAMES, SimArm
+from activeloc_ros.control import (
+    clamp_to_limits, HOME_DEG, JOINT_NAMES, pose_problem, SimArm)
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.serial_link import BraccioLink
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.messages import joint_state, stamp_ns, time_from_ns
 from activeloc_ros.ros_params import declare, Param, run
-
-HOME = [90, 90, 45, 45, 90, 73]
 
 
 # Set at run time, a parameter applies at once, except those that fix the hardware or the
@@ -49,8 +48,8 @@ PARAMS = (
     Param('state_rate', 50.0, 'joint_states publishing rate, Hz', in_range(1.0, 500.0)),
     Param('step_delay_ms', 20, 'Servo step delay, ms per degree (sim; must match the sketch)',
           in_range(*STEP_DELAY_MS_RANGE), read_only=True),
-    Param('home_deg', HOME, 'Home pose, degrees', pose_problem),
-    Param('sim_start_deg', HOME, 'Pose the simulated arm starts in, degrees', pose_problem,
+    Param('home_deg', list(HOME_DEG), 'Home pose, degrees', pose_problem),
+    Param('sim_start_deg', list(HOME_DEG), 'Pose the simulated arm starts in, degrees', pose_problem,
           read_only=True),
     Param('stop_mode', 'hold', "On shutdown: 'hold' stops where it is, 'home' goes home "
           'slowly', one_of('hold', 'home')),

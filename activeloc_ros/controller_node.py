@@ -19,8 +19,8 @@ from sensor_msgs.msg import CameraInfo, JointState
 
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
 from activeloc_ros.control import (
-    ArmMapping, ControllerConfig, Intrinsics, JOINT_NAMES, PD_VARIANTS, PDConfig, PDController,
-    pose_problem, ReactiveController)
+    ArmMapping, ControllerConfig, HOME_DEG, Intrinsics, JOINT_NAMES, PD_VARIANTS, PDConfig,
+    PDController, pose_problem, ReactiveController)
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.pd import DERIVATIVE_MODES
 from activeloc_ros.errors import ConfigError
@@ -36,7 +36,7 @@ def _joint_names(value) -> 'str | None':
 # How joints aim the camera; the virtual camera (camera_node) declares the same ones. Fixed
 # at start-up: they describe the arm and the camera mount, which do not change mid-run.
 MAPPING_PARAMS = (
-    Param('home_deg', [90, 90, 45, 45, 90, 73], 'Home pose (degrees, camera straight ahead)',
+    Param('home_deg', list(HOME_DEG), 'Home pose (degrees, camera straight ahead)',
           pose_problem, read_only=True),
     Param('pan_joint', 'base', 'Joint that pans the camera', one_of(*JOINT_NAMES),
           read_only=True),
