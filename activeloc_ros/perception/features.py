@@ -37,13 +37,6 @@ def fast_bfloat16() -> bool:
     return bool({'AMX', 'AVX512_BF16'} & set(cpu_flags()))
 
 
-def _resolve(precision: str) -> str:
-    """The precision 'auto' stands for on this CPU."""
-    if precision == 'auto':
-        return 'bfloat16' if fast_bfloat16() else 'float32'
-    return precision
-
-
 def resolve_precision(precision: str) -> str:
     """The precision 'auto' stands for on this CPU (int8 is `Features`' own choice)."""
     if precision == 'auto':
