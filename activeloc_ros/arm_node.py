@@ -49,8 +49,8 @@ PARAMS = (
     Param('step_delay_ms', 20, 'Servo step delay, ms per degree (sim; must match the sketch)',
           in_range(*STEP_DELAY_MS_RANGE), read_only=True),
     Param('home_deg', list(HOME_DEG), 'Home pose, degrees', pose_problem),
-    Param('sim_start_deg', list(HOME_DEG), 'Pose the simulated arm starts in, degrees', pose_problem,
-          read_only=True),
+    Param('sim_start_deg', list(HOME_DEG), 'Pose the simulated arm starts in, degrees',
+          pose_problem, read_only=True),
     Param('stop_mode', 'hold', "On shutdown: 'hold' stops where it is, 'home' goes home "
           'slowly', one_of('hold', 'home')),
     Param('home_speed_deg_s', 15.0, 'Joint speed when going home at shutdown, deg/s',
