@@ -21,13 +21,13 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import CameraInfo, Image, JointState
 
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
-from activeloc_ros.controller_node import MAPPING_PARAMS, mapping_from
 from activeloc_ros.errors import ConfigError, SourceError
 from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.lockstep import IDLE, Lockstep
 from activeloc_ros.messages import arm_joints_deg, stamp_ns, time_from_ns, time_from_s
 from activeloc_ros.ros_params import declare, Param, run
 from activeloc_ros.screen import ScreenConfig, VirtualScreen
+from activeloc_ros.settings import MAPPING_PARAMS, mapping_from
 from activeloc_ros.sources import default_bag, open_source, Pacer, pinhole_matrix
 
 # camera parameter -> ScreenConfig field

@@ -19,34 +19,14 @@ from sensor_msgs.msg import CameraInfo, JointState
 
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
 from activeloc_ros.control import (
-    ArmMapping, ControllerConfig, HOME_DEG, Intrinsics, JOINT_NAMES, PD_VARIANTS, PDConfig,
-    PDController, pose_problem, ReactiveController)
+    ControllerConfig, Intrinsics, PD_VARIANTS, PDConfig, PDController, ReactiveController)
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.pd import DERIVATIVE_MODES
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.messages import arm_joints_deg, joint_state, stamp_s
 from activeloc_ros.ros_params import declare, Param, run
+from activeloc_ros.settings import MAPPING_PARAMS, mapping_from
 
-
-def _joint_names(value) -> 'str | None':
-    bad = [n for n in value if n not in JOINT_NAMES]
-    return f'unknown joints {bad}; joints are {list(JOINT_NAMES)}' if bad else None
-
-
-# How joints aim the camera; the virtual camera (camera_node) declares the same ones. Fixed
-# at start-up: they describe the arm and the camera mount, which do not change mid-run.
-MAPPING_PARAMS = (
-    Param('home_deg', list(HOME_DEG), 'Home pose (degrees, camera straight ahead)',
-          pose_problem, read_only=True),
-    Param('pan_joint', 'base', 'Joint that pans the camera', one_of(*JOINT_NAMES),
-          read_only=True),
-    Param('pan_gain', 1.0, 'Degrees of pan joint per degree of pan (negative flips)',
-          read_only=True),
-    Param('tilt_joints', ['wrist_ver'], 'Joints that tilt the camera', _joint_names,
-          read_only=True),
-    Param('tilt_gains', [1.0], 'Degrees of each tilt joint per degree of tilt',
-          read_only=True),
-)
 
 # The gains, limits and filters apply at once when set at run time (ros2 param set); the
 # servo speed, the mapping and the report period are read-only.
@@ -81,13 +61,6 @@ PARAMS = (
     Param('latency_report_period', 10.0, 'Log frame-to-command latency p50/p95 every this '
           'many seconds (0: only at shutdown)', non_negative, read_only=True),
 )
-
-
-def mapping_from(values: dict) -> ArmMapping:
-    """The arm mapping from validated MAPPING_PARAMS values (raises ConfigError)."""
-    return ArmMapping(home_deg=tuple(values['home_deg']), pan_joint=values['pan_joint'],
-                      pan_gain=values['pan_gain'], tilt_joints=tuple(values['tilt_joints']),
-                      tilt_gains=tuple(values['tilt_gains']))
 
 
 def config_from(values: dict) -> ControllerConfig:
