@@ -167,13 +167,10 @@ def own_ros_args(args) -> list[str] | None:
 
 
 def camera_screen(files=()):
-    """The virtual screen a `virtual:` camera renders: the camera node's declared defaults,
-    overlaid with params/camera.yaml and then the user's params `files`."""
-    from activeloc_ros.ros_params import file_values
-    from activeloc_ros.camera_node import PARAMS, SCREEN_FIELDS
+    """The virtual screen a `virtual:` camera renders, from the camera's `node_values`."""
+    from activeloc_ros.camera_node import SCREEN_FIELDS
     from activeloc_ros.screen import ScreenConfig, VirtualScreen
-    values = {p.name: p.default for p in PARAMS}
-    values.update(file_values('camera', [share_path('params/camera.yaml'), *files]))
+    values = node_values('camera', files)
     return VirtualScreen(ScreenConfig(**{field: values[name]
                                          for name, field in SCREEN_FIELDS.items()}))
 
@@ -252,6 +249,15 @@ def node_params(node: str) -> list:
     return list(importlib.import_module(f'activeloc_ros.{node}_node').PARAMS)
 
 
+def node_values(node: str, files=()) -> dict:
+    """A node's parameter values before it starts: its declared defaults, overlaid with its
+    packaged params/<node>.yaml, then the user's params `files`."""
+    from activeloc_ros.ros_params import file_values
+    values = {p.name: p.default for p in node_params(node)}
+    values.update(file_values(node, [share_path(f'params/{node}.yaml'), *files]))
+    return values
+
+
 def cli_values(ros_args: list[str]) -> dict:
     """The ``-p name:=value`` settings among ROS arguments, typed as rcl types them."""
     from activeloc_ros.ros_params import parse_value
@@ -266,15 +272,13 @@ def cli_values(ros_args: list[str]) -> dict:
 def check_node_params(args) -> None:
     """Check every node's parameters, from its files and bringup's options, as the node
     checks them at start, so that a bad value stops the run before any node starts."""
-    from activeloc_ros.ros_params import file_values, files_problems, validate
+    from activeloc_ros.ros_params import files_problems, validate
     problems = []
     for node in NODES:
         params = node_params(node)
-        files = [share_path(f'params/{node}.yaml'), *args.params]
-        found = files_problems(node, params, files)
+        found = files_problems(node, params, [share_path(f'params/{node}.yaml'), *args.params])
         if not found:
-            values = {p.name: p.default for p in params}
-            values.update(file_values(node, files))
+            values = node_values(node, args.params)
             values.update(cli_values(args.ros_args))
             found = validate(params, values) or node_problems(node, values)
         problems += [f'{node}: {p}' for p in found]

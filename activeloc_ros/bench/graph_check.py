@@ -18,25 +18,11 @@ import tempfile
 import yaml
 
 from activeloc_ros.bench.pointers import ModelPointer
-from activeloc_ros.bringup import camera_screen
+from activeloc_ros.bringup import camera_screen, node_values
 from activeloc_ros.closed_loop import run_episode, screen_world
 from activeloc_ros.data import FrameTruth
 from activeloc_ros.errors import ActivelocError
-from activeloc_ros.paths import share_path
-from activeloc_ros.ros_params import file_values
 from activeloc_ros.sources import default_bag, open_scene
-
-
-def node_settings(node: str) -> dict:
-    """Declared defaults of a node overlaid with its packaged params/<node>.yaml."""
-    if node == 'controller':
-        from activeloc_ros.controller_node import PARAMS
-    else:
-        from activeloc_ros.perception_node import model_params
-        PARAMS = model_params()
-    values = {p.name: p.default for p in PARAMS}
-    values.update(file_values(node, [share_path(f'params/{node}.yaml')]))
-    return values
 
 
 def bench_poses(scene: str, frames: int) -> list[tuple[float, float, float]]:
@@ -53,8 +39,8 @@ def bench_poses(scene: str, frames: int) -> list[tuple[float, float, float]]:
                 return
             yield i, frame.rgb, FrameTruth(i, None, (), False)
 
-    control = node_settings('controller')     # bringup's default: the arm's aim limits only
-    perception = node_settings('perception')
+    control = node_values('controller')       # bringup's default: the arm's aim limits only
+    perception = node_values('perception')
     fields = PerceptionConfig.descriptions()
     pointer = ModelPointer('ours', {k: v for k, v in perception.items() if k in fields})
     controller = config_from(control)
