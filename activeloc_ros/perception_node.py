@@ -63,8 +63,8 @@ NODE_PARAMS = [
     Param('pipeline', False, 'encode the next frame while learning from this one '
           '(perception.pipeline: the same maps; torch and the encoder get half the cores each '
           'unless num_threads is set). More maps/s from a camera faster than the model, '
-          'but later ones: 12.5 against 10.2 maps/s from a 30 frames/s camera, p95 140 '
-          'against 111 ms (2-core EPYC). Not used when the encoder learns (update_encoder)',
+          'but later ones (README, Weights). Not used when the encoder learns '
+          '(update_encoder)',
           read_only=True),
 ]
 
