@@ -135,12 +135,8 @@ class SurpriseModel:
         seed_everything(cfg.seed)
         self.train_encoder = cfg.learn and cfg.update_encoder
         self.features = Features(cfg, encoder=encoder, train=self.train_encoder)
-        f = self.features
-        self.encoder = f.encoder                    # the weights a checkpoint holds
-        self.precision = f.precision                # the encoder's, in use
-        self.size, self.grid, self.cells = f.size, f.grid, f.cells
         self.predictor_precision = resolve_precision(cfg.predictor_precision)
-        self.predictor = Predictor(cfg, f.channels)
+        self.predictor = Predictor(cfg, self.features.channels)
         self._predict = torch.compile(self.predictor) if cfg.compile else self.predictor
         groups = [{'params': list(self.predictor.parameters()), 'scale': 1.0}]
         if self.train_encoder:
@@ -156,6 +152,29 @@ class SurpriseModel:
         self.reset()
         self._snapshot = None
         self._take_snapshot()
+
+    # the encoder's facts, as `features` has them
+    @property
+    def encoder(self) -> nn.Module:
+        """The encoder whose weights a checkpoint holds (and learn, with update_encoder)."""
+        return self.features.encoder
+
+    @property
+    def precision(self) -> str:
+        """The encoder's arithmetic in use."""
+        return self.features.precision
+
+    @property
+    def size(self) -> int:
+        return self.features.size                               # input side, 224
+
+    @property
+    def grid(self) -> int:
+        return self.features.grid                               # 14
+
+    @property
+    def cells(self) -> int:
+        return self.features.cells                              # 196
 
     # -- state -------------------------------------------------------------------------------
     def reset(self) -> None:
