@@ -203,9 +203,9 @@ class ControllerNode(Node):
                 now = max(now, t_capture)
             command = self.core.on_location(msg.point.x, msg.point.y, t_capture, now,
                                             peak=msg.point.z)
-            if command is not None:
+            if command is not None:        # its own, or the watchdog's hold
                 self._publish(command.joints_deg, msg.header.stamp)
-            else:
+            if command is None or command.reason == 'hold':
                 self.ignored_pub.publish(msg)
         self._log_state()
         self._log_ignored()

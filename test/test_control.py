@@ -255,6 +255,18 @@ def test_watchdog_holds_once_then_stays_silent():
     assert all(ctl.tick(t) is None for t in (0.6, 1.0, 5.0, 50.0))  # no drift afterwards
 
 
+def test_ignored_locations_run_the_watchdog_as_silence_does():
+    """A stream of locations it ignores (weak maps) is no location: after the timeout the
+    answer to one is the hold, once, in every driver (the benchmark has no timer)."""
+    ctl = make_controller(watchdog_timeout=0.5, min_peak=0.01)
+    assert ctl.on_location(pixel_for(20.0), D435.cy, 0.0, 0.0, peak=0.2) is not None
+    assert ctl.on_location(pixel_for(5.0), D435.cy, 0.4, 0.4, peak=0.005) is None
+    hold = ctl.on_location(pixel_for(5.0), D435.cy, 0.6, 0.6, peak=0.005)
+    assert hold is not None and hold.reason == 'hold' and ctl.state == 'holding'
+    assert ctl.on_location(pixel_for(5.0), D435.cy, 0.7, 0.7, peak=0.005) is None
+    assert ctl.ignored == {'weak or bad peak': 3}
+
+
 def test_after_a_hold_tracking_restarts_without_a_derivative_kick():
     ctl = make_controller(pd=PDConfig(kp=1.0, kd=1.0, dead_band=0.0), watchdog_timeout=0.5)
     ctl.on_location(pixel_for(0.0), D435.cy, 0.0, 0.0)

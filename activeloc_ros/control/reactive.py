@@ -200,8 +200,10 @@ class ReactiveController:
         if self.history.add(t, pose) and self.commands == 0:
             self.guard.reset(pose, t)
 
-    def _ignore(self, reason: str) -> None:
+    def _ignore(self, reason: str, t_now: float) -> Command | None:
+        """Count an ignored location; the watchdog's answer to it."""
         self.ignored[reason] = self.ignored.get(reason, 0) + 1
+        return self.tick(t_now)
 
     def _pose_at(self, t: float) -> tuple[float, ...]:
         pose = self.history.at(t, self.config.pose_slack)
@@ -226,29 +228,25 @@ class ReactiveController:
                     peak: float | None = None) -> Command | None:
         """React to an action at pixel (u, v) of a frame captured at ``t_capture``.
 
-        Returns the command to send, or None when the location is ignored (no intrinsics,
-        NaN/absurd values, out-of-order stamps, weak peak); the reason is counted in
-        ``ignored``.
+        Returns the command to send. A location can be ignored (no intrinsics, NaN/absurd
+        values, out-of-order stamps, weak peak, a moving camera; the reason is counted in
+        ``ignored``): then the answer is the watchdog's (`tick`), a hold once no location
+        was accepted for ``watchdog_timeout``, else None. So the watchdog runs on every
+        frame, whichever driver calls: the node's timer only adds the case of no frames.
         """
         intr = self.intrinsics
         if intr is None:
-            self._ignore('no camera info')
-            return None
+            return self._ignore('no camera info', t_now)
         if not (math.isfinite(t_capture) and math.isfinite(t_now)):
-            self._ignore('bad time')
-            return None
+            return self._ignore('bad time', t_now)
         if not intr.contains(u, v):
-            self._ignore('outside image')
-            return None
+            return self._ignore('outside image', t_now)
         if peak is not None and not (math.isfinite(peak) and peak >= self.config.min_peak):
-            self._ignore('weak or bad peak')
-            return None
+            return self._ignore('weak or bad peak', t_now)
         if t_capture <= self._last_capture:
-            self._ignore('out of order')
-            return None
+            return self._ignore('out of order', t_now)
         if self.config.settle_time > 0 and self._moved(t_capture):
-            self._ignore('camera moving')
-            return None
+            return self._ignore('camera moving', t_now)
         if self._holding or t_now - self._last_accept > self.config.watchdog_timeout:
             self.pd.reset()  # a fresh start: no derivative across a gap
         self._holding = False
