@@ -23,6 +23,13 @@ def share_path(relative: str) -> Path:
     return installed if installed.exists() else here
 
 
+def params_files(node: str) -> list[Path]:
+    """The package's params files of a node, in the order they apply: params/robot.yaml
+    (what several nodes share: the home pose, the servos' speed, the aiming joints), then
+    the node's own params/<node>.yaml."""
+    return [share_path('params/robot.yaml'), share_path(f'params/{node}.yaml')]
+
+
 def file_sha256(path: Path) -> str:
     digest = hashlib.sha256()
     with open(path, 'rb') as stream:

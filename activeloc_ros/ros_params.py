@@ -205,10 +205,9 @@ def params_file_problems(content, node: str, declared: Mapping[str, Parameter.Ty
 def _shipped_keys() -> frozenset[str]:
     """Every parameter set in the package's own params files: the keys a shared /**
     section may hold for other nodes."""
-    from activeloc_ros.paths import share_path
+    from activeloc_ros.paths import params_files
     keys = set()
-    for name in NODE_NAMES:
-        path = share_path(f'params/{name}.yaml')
+    for path in dict.fromkeys(p for name in NODE_NAMES for p in params_files(name)):
         if path.is_file():
             for body in (load_params_file(path) or {}).values():
                 keys.update(_flatten((body or {}).get('ros__parameters') or {}))

@@ -31,8 +31,10 @@ def spin_until(executor, condition, timeout):
 
 
 def params_args(node: str, *extra: str) -> list[str]:
-    """cli_args loading the real params file of `node`, then `-p name:=value` extras."""
-    args = ['--ros-args', '--params-file', str(PARAMS / f'{node}.yaml')]
+    """cli_args loading the real params files of `node` as bringup does (the robot's, then
+    its own), then `-p name:=value` extras."""
+    args = ['--ros-args', '--params-file', str(PARAMS / 'robot.yaml'),
+            '--params-file', str(PARAMS / f'{node}.yaml')]
     for item in extra:
         args += ['-p', item]
     return args

@@ -31,6 +31,24 @@ def test_params_file_matches_declared_parameters(context, name):
         node.destroy_node()
 
 
+def test_robot_yaml_is_declared_by_the_nodes_that_share_it(context):
+    """params/robot.yaml holds what several nodes must agree on, once: every key is a
+    parameter of at least two nodes, and each of them starts with the file's value."""
+    content = yaml.safe_load((PARAMS / 'robot.yaml').read_text())
+    values = content['/**']['ros__parameters']
+    sharing = {key: [] for key in values}
+    for name in ('camera', 'perception', 'controller', 'arm'):
+        node = node_class(name)(context=context, cli_args=params_args(name))
+        try:
+            for key, value in values.items():
+                if node.has_parameter(key):
+                    sharing[key].append(name)
+                    assert node.get_parameter(key).value == value, f'{name}: {key}'
+        finally:
+            node.destroy_node()
+    assert all(len(names) >= 2 for names in sharing.values()), sharing
+
+
 def test_perception_yaml_repeats_the_model_defaults():
     """The YAML overrides the dataclass, so a stale value would silently change the model."""
     import dataclasses
