@@ -57,8 +57,8 @@ class Pointing:
 class Pointer(Protocol):
     name: str
 
-    def reset(self) -> None:
-        """A new sequence begins."""
+    def reset(self, sequence: str) -> None:
+        """A new sequence, named `sequence`, begins."""
 
     def locate(self, view: View) -> Pointing:
         """Where to look next."""
@@ -149,7 +149,7 @@ def run_episode(world: ScreenWorld, pointer: Pointer, *, controller: ControllerC
         raise ConfigError(f'mode must be one of {list(MODES)}, got {mode!r}')
     home = controller.mapping.home_deg
     episode = Episode(name, pointer.name, mode)
-    pointer.reset()
+    pointer.reset(name)
     ctl = ReactiveController(controller, start_deg=home, t0=0.0)
     ctl.set_intrinsics(world.intrinsics)
     pending: list[tuple[float, tuple[float, ...]]] = []   # (time it reaches the arm, joints)

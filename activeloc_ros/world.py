@@ -42,8 +42,9 @@ def frame_time(index: int, fps: float) -> float:
     return index / fps
 
 
-def _centre(box) -> tuple[float, float]:
-    # box pixels cover [x, x + w); the screen puts pixel centres on integers
+def pixel_centre(box) -> tuple[float, float]:
+    """A box's centre where the screen and the camera put pixel centres: on integers (the
+    box's pixels cover [x, x + w))."""
     x, y = box.centre
     return x - 0.5, y - 0.5
 
@@ -98,7 +99,7 @@ class ScreenWorld:
 
     def _actors(self) -> np.ndarray:
         """(N, 2) scene pixels of the annotated actors' centres."""
-        return np.array([_centre(b) for b in self.truth.actors], np.float64).reshape(-1, 2)
+        return np.array([pixel_centre(b) for b in self.truth.actors], np.float64).reshape(-1, 2)
 
     def observe(self) -> View | None:
         """The camera's capture of the shown frame, if one is due now; else None."""
@@ -107,7 +108,7 @@ class ScreenWorld:
         self.captures += 1
         pan, tilt, wh = self.pan, self.tilt, self.scene_wh
         rgb = self.screen.render(self.scene, pan, tilt)
-        primary = (self.screen.project([_centre(self.truth.primary)], pan, tilt, wh)[0]
+        primary = (self.screen.project([pixel_centre(self.truth.primary)], pan, tilt, wh)[0]
                    if self.truth.primary else None)
         centre = self.screen.project([((wh[0] - 1) / 2, (wh[1] - 1) / 2)], pan, tilt, wh)[0]
         return View(rgb, self.index, self.t, pan, tilt,

@@ -42,15 +42,14 @@ def make_moving_square(root: Path, name: str = 'square', n: int = 10) -> Path:
 def test_frame_differencing_finds_the_moving_square(tmp_path):
     seq = data.load_sequence(make_moving_square(tmp_path))
     method = passive.FrameDiff()
-    method.reset(seq)
     tallies, _ = passive.run_sequence(seq, [method], max_frames=None, warmup=1)
     assert tallies['framediff'].hits == [True] * 9
     # the peak itself sits on the square's path, not just within the grown box
-    method.reset(seq)
+    method.reset(seq.name)
     frames = list(seq.frames())
-    method.step(frames[4].image)
-    heat = method.step(frames[5].image)
-    x, y = method.peak(heat, (W, H))
+    method.locate(passive.view_of(frames[4], seq.fps))
+    pointing = method.locate(passive.view_of(frames[5], seq.fps))
+    heat, (x, y) = passive.heat_and_point(pointing, (W, H))
     (x0, y0), (x1, y1) = square_position(4), square_position(5)
     assert x0 <= x <= x1 + SIDE and y0 <= y <= y1 + SIDE
     assert heat.shape == (14, 14) and heat.sum() == pytest.approx(1.0)
@@ -59,7 +58,9 @@ def test_frame_differencing_finds_the_moving_square(tmp_path):
 def test_centre_and_random_baselines(tmp_path):
     seq = data.load_sequence(make_moving_square(tmp_path))
     centre, rand = passive.CentreBias(), passive.RandomMap(seed=3)
-    assert centre.peak(centre.step(np.zeros((H, W, 3), np.uint8)), (W, H)) == (70.0, 56.0)
+    first = next(seq.frames())
+    pointing = centre.locate(passive.view_of(first, seq.fps))
+    assert passive.heat_and_point(pointing, (W, H))[1] == (70.0, 56.0)
     tallies, chance = passive.run_sequence(seq, [centre, rand], max_frames=None, warmup=0)
     # the square passes the centre around frames 5-6 only
     assert 1 <= sum(tallies['centre'].hits) <= 4
@@ -137,14 +138,19 @@ class FakeModel:
 
     built = 0
 
-    def __init__(self, cfg: FakeConfig) -> None:
+    train_encoder = False
+
+    def __init__(self, cfg: FakeConfig, encoder=None) -> None:
         self.cfg = cfg
+        self.encoder = encoder or object()
         FakeModel.built += 1
 
     def step(self, frame: np.ndarray):
         grey = frame.mean(axis=2).astype(np.float32)
         heat = cv2.resize(grey, (14, 14), interpolation=cv2.INTER_AREA)
-        return types.SimpleNamespace(surprise_map=heat / heat.sum())
+        heat = heat / heat.sum()
+        return types.SimpleNamespace(surprise_map=heat, peak=float(heat.max()),
+                                     location_px=(0.0, 0.0))
 
     def reset(self) -> None:
         pass
@@ -182,7 +188,7 @@ def test_model_rows_per_encoder_and_ablation(tmp_path, capsys, fake_model):
     ('no_attn', {'use_attn_loss': False}),
 ])
 def test_ablation_switches_reach_the_config(fake_model, ablation, expected):
-    method = passive.ModelMethod(None, ablation, seed=5)
+    method = passive.model_pointer(None, ablation, seed=5)
     defaults = FakeConfig()
     for key in ('mode', 'motion', 'use_attn_loss'):
         assert getattr(method.config, key) == expected.get(key, getattr(defaults, key))
@@ -192,7 +198,7 @@ def test_ablation_switches_reach_the_config(fake_model, ablation, expected):
 
 def test_each_sequence_gets_a_fresh_model(fake_model, tmp_path):
     seqs = [data.load_sequence(make_moving_square(tmp_path, n, n=3)) for n in 'ab']
-    method = passive.ModelMethod(None, 'full')
+    method = passive.model_pointer(None, 'full')
     first = method.model
     passive.evaluate(seqs, [method], quiet=True)
     assert FakeModel.built == 2 and method.model is not first
@@ -236,13 +242,10 @@ def test_auc_jitter_breaks_the_ties_of_a_one_hot_map(tmp_path):
         def reset(self, sequence):
             pass
 
-        def step(self, image):
+        def locate(self, view):
             heat = np.zeros((14, 14))
             heat[0, 0] = 1.0
-            return heat
-
-        def peak(self, heat, image_wh):
-            return passive.metrics.peak_point(heat, image_wh)
+            return passive.Pointing(None, heat, 1.0)
 
     seq = data.load_sequence(make_moving_square(tmp_path, n=8))
     plain, _ = passive.run_sequence(seq, [OneHotCorner()], max_frames=None, warmup=1)
@@ -259,7 +262,7 @@ def test_a_panning_camera_leaves_the_peak_on_the_actor_not_the_border(data_root)
     30 frames of otb_walking2 put 66% of the peaks on the map's outer ring and 21% on the
     walker; with the mirrored border of the default, 28% and 59% (a random cell: 27%)."""
     sequence = data.load_sequence(data_root / 'otb_walking2')
-    method = passive.ModelMethod(None, 'full')
+    method = passive.model_pointer(None, 'full')
     tallies, _ = passive.run_sequence(sequence, [method], max_frames=30, warmup=1,
                                       camera=passive.PanningCamera(10.0))
     result = tallies[method.name].summary()

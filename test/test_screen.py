@@ -312,17 +312,17 @@ def test_the_model_pointer_shares_only_a_frozen_encoder():
     frames = np.random.default_rng(0).integers(0, 255, (4, 64, 64, 3), np.uint8)
 
     learning = ModelPointer('ours', {**tiny, 'update_encoder': True})
-    learning.reset()
+    learning.reset('a')
     start = [p.detach().clone() for p in learning.model.encoder.parameters()]
     for frame in frames:
         learning.model.step(frame)
     assert any(not torch.equal(a, b) for a, b in zip(start, learning.model.encoder.parameters()))
-    learning.reset()                                   # the next sequence
+    learning.reset('b')                                # the next sequence
     assert all(torch.equal(a, b) for a, b in zip(start, learning.model.encoder.parameters()))
 
     frozen = ModelPointer('ours', tiny)
-    frozen.reset()
+    frozen.reset('a')
     encoder = frozen.model.encoder
     frozen.model.step(frames[0])
-    frozen.reset()
+    frozen.reset('b')
     assert frozen.model.encoder is encoder

@@ -1,7 +1,9 @@
 """Passive benchmark: with the camera fixed, does the map's peak fall on the annotated actor?
 
 Every sequence is streamed once; each frame goes to every method (the perception model
-under each requested encoder / ablation, and the baselines), which returns a 14x14 map.
+under each requested encoder / ablation, and the baselines). Each is a `closed_loop.Pointer`,
+as in the screen benchmark (the model and 'framediff-ego' are the same objects,
+`bench.pointers`), and answers with a 14x14 map.
 Per frame with ground truth (inside `eval_frames`, from frame `--warmup` on):
 - hit: the peak cell's centre lies inside an annotated actor's box grown by one grid cell
   (any actor when several are annotated); the centre baseline uses the image centre itself;
@@ -30,7 +32,7 @@ import math
 from pathlib import Path
 import sys
 import time
-from typing import Callable, Iterator, Protocol
+from typing import Iterator
 import zlib
 
 import cv2
@@ -38,27 +40,18 @@ import numpy as np
 
 from activeloc_ros import data, metrics
 from activeloc_ros.bench import add_sequence_options, key_values, load_selected, names
-from activeloc_ros.bench.pointers import ABLATIONS as MODEL_ROWS
+from activeloc_ros.bench.pointers import (
+    ABLATIONS as MODEL_ROWS, FrameDiffPointer, ModelPointer)
+from activeloc_ros.closed_loop import Pointer, Pointing
 from activeloc_ros.errors import ActivelocError, DataError
 from activeloc_ros.paths import write_atomic
 from activeloc_ros.progress import Progress
+from activeloc_ros.world import frame_time, pixel_centre, View
 
 GRID = (14, 14)
 # Paper Table 3 rows of the perception (`bench.pointers.ABLATIONS`); the encoder rows are
 # chosen with --encoder here.
 ABLATIONS = tuple(name for name, fields in MODEL_ROWS.items() if 'encoder' not in fields)
-
-
-class Method(Protocol):
-    """Something that turns each frame of a sequence into a map over the grid."""
-
-    name: str
-
-    def reset(self, sequence: data.Sequence) -> None: ...
-
-    def step(self, image: np.ndarray) -> np.ndarray: ...
-
-    def peak(self, heat: np.ndarray, image_wh: tuple[int, int]) -> tuple[float, float]: ...
 
 
 class RandomMap:
@@ -70,33 +63,30 @@ class RandomMap:
         self.seed = seed
         self.rng = np.random.default_rng(seed)
 
-    def reset(self, sequence: data.Sequence) -> None:
-        self.rng = np.random.default_rng([self.seed, zlib.crc32(sequence.name.encode())])
+    def reset(self, sequence: str) -> None:
+        self.rng = np.random.default_rng([self.seed, zlib.crc32(sequence.encode())])
 
-    def step(self, image: np.ndarray) -> np.ndarray:
+    def locate(self, view: View) -> Pointing:
         heat = self.rng.random(GRID)
-        return heat / heat.sum()
-
-    def peak(self, heat: np.ndarray, image_wh: tuple[int, int]) -> tuple[float, float]:
-        return metrics.peak_point(heat, image_wh)
+        heat = heat / heat.sum()
+        return Pointing(None, heat, float(heat.max()))
 
 
 class CentreBias:
-    """Always the image centre; its map is a centred Gaussian."""
+    """Always the image centre; its map, a centred Gaussian, is a prior to score (AUC), not
+    a measurement, so it has no peak and its hits are scored at the centre itself."""
 
     name = 'centre'
 
     def __init__(self) -> None:
         self.heat = metrics.centre_gaussian(GRID)
 
-    def reset(self, sequence: data.Sequence) -> None:
+    def reset(self, sequence: str) -> None:
         pass
 
-    def step(self, image: np.ndarray) -> np.ndarray:
-        return self.heat
-
-    def peak(self, heat: np.ndarray, image_wh: tuple[int, int]) -> tuple[float, float]:
-        return image_wh[0] / 2.0, image_wh[1] / 2.0
+    def locate(self, view: View) -> Pointing:
+        h, w = view.rgb.shape[:2]
+        return Pointing((w / 2.0, h / 2.0), self.heat)
 
 
 class FrameDiff:
@@ -107,53 +97,37 @@ class FrameDiff:
     def __init__(self) -> None:
         self.previous: np.ndarray | None = None
 
-    def reset(self, sequence: data.Sequence) -> None:
+    def reset(self, sequence: str) -> None:
         self.previous = None
 
-    def step(self, image: np.ndarray) -> np.ndarray:
-        grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    def locate(self, view: View) -> Pointing:
+        grey = cv2.cvtColor(view.rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
         grey = cv2.GaussianBlur(grey, (5, 5), 0)
         previous, self.previous = self.previous, grey
         if previous is None or previous.shape != grey.shape:
-            return np.full(GRID, 1.0 / (GRID[0] * GRID[1]), np.float32)
-        diff = cv2.absdiff(grey, previous)
-        heat = cv2.resize(diff, (GRID[1], GRID[0]), interpolation=cv2.INTER_AREA)
-        total = float(heat.sum())
-        return heat / total if total > 0 else np.full(GRID, 1.0 / heat.size, np.float32)
+            heat = np.full(GRID, 1.0 / (GRID[0] * GRID[1]), np.float32)
+        else:
+            heat = cv2.resize(cv2.absdiff(grey, previous), (GRID[1], GRID[0]),
+                              interpolation=cv2.INTER_AREA)
+            total = float(heat.sum())
+            heat = heat / total if total > 0 else np.full(GRID, 1.0 / heat.size, np.float32)
+        return Pointing(None, heat, float(heat.max()))
 
-    def peak(self, heat: np.ndarray, image_wh: tuple[int, int]) -> tuple[float, float]:
-        return metrics.peak_point(heat, image_wh)
 
-
-def _ablation_overrides(ablation: str) -> dict:
-    """PerceptionConfig fields for each paper Table 3 row (the screen benchmark's table)."""
+def model_pointer(encoder: str | None, ablation: str, *, seed: int = 0,
+                  extra: dict | None = None) -> ModelPointer:
+    """The perception model of one row, named model:ENCODER/ABLATION (a paper Table 3 row,
+    `bench.pointers.ABLATIONS`), fresh for every sequence as in the screen benchmark."""
     if ablation not in ABLATIONS:
         raise ActivelocError(f'unknown ablation {ablation!r}; choose from '
                              f'{", ".join(ABLATIONS)}')
-    return dict(MODEL_ROWS[ablation])
-
-
-class EgoFrameDiff:
-    """Frame differencing with the camera's motion removed (`motion.FrameDifference`)."""
-
-    name = 'framediff-ego'
-
-    def __init__(self) -> None:
-        from activeloc_ros.perception.motion import FrameDifference
-        self.diff = FrameDifference(grid=GRID)
-
-    def reset(self, sequence: data.Sequence) -> None:
-        self.diff.reset()
-
-    def step(self, image: np.ndarray) -> np.ndarray:
-        heat = self.diff.step(image)
-        total = 0.0 if heat is None else float(heat.sum())
-        if total <= 0:
-            return np.full(GRID, 1.0 / (GRID[0] * GRID[1]), np.float32)
-        return heat / total
-
-    def peak(self, heat: np.ndarray, image_wh: tuple[int, int]) -> tuple[float, float]:
-        return metrics.peak_point(heat, image_wh)
+    settings = {'seed': seed, **(extra or {})}
+    if encoder:
+        settings['encoder'] = encoder
+    settings.update(MODEL_ROWS[ablation])
+    pointer = ModelPointer('', settings)
+    pointer.name = f'model:{pointer.config.encoder}/{ablation}'
+    return pointer
 
 
 class PanningCamera:
@@ -182,9 +156,9 @@ class PanningCamera:
         return out
 
     def frames(self, sequence: data.Sequence, *, max_frames: int | None
-               ) -> Iterator[tuple[data.Sample, bool]]:
+               ) -> Iterator[tuple[data.Sample, bool, tuple[float, float]]]:
         """The sequence as this camera sees it: (sample in camera pixels, moved since the
-        previous frame)."""
+        previous frame, (pan, tilt) in radians)."""
         limit = len(sequence) if max_frames is None else min(len(sequence), max_frames)
         poses = self.poses(limit)
         wh = (sequence.width, sequence.height)
@@ -205,43 +179,7 @@ class PanningCamera:
                                     sample.truth.scored)
             moved = sample.index > 0 and poses[sample.index] != poses[sample.index - 1]
             yield data.Sample(sample.index, self.screen.render(sample.image, pan, tilt),
-                              truth), moved
-
-
-class ModelMethod:
-    """The perception model (`SurpriseModel`), fresh for every sequence.
-
-    It learns online, so a model carried from one sequence to the next would make each
-    sequence's score depend on the order; every sequence starts from the same seeded state.
-    The first model is built at once so missing weights fail before the run starts.
-    """
-
-    def __init__(self, encoder: str | None, ablation: str, *, seed: int = 0,
-                 extra: dict | None = None) -> None:
-        from activeloc_ros.perception.config import PerceptionConfig
-        from activeloc_ros.perception.model import SurpriseModel
-        settings = {'seed': seed, **(extra or {})}
-        if encoder:
-            settings['encoder'] = encoder
-        settings.update(_ablation_overrides(ablation))
-        self.config = PerceptionConfig.from_dict(settings)
-        self.encoder = self.config.encoder
-        self.ablation = ablation
-        self.name = f'model:{self.encoder}/{ablation}'
-        self.factory: Callable[[], object] = lambda: SurpriseModel(self.config)
-        self.model = self.factory()
-        self.used = False
-
-    def reset(self, sequence: data.Sequence) -> None:
-        if self.used:
-            self.model = self.factory()
-        self.used = True
-
-    def step(self, image: np.ndarray) -> np.ndarray:
-        return np.asarray(self.model.step(image).surprise_map, dtype=np.float64)
-
-    def peak(self, heat: np.ndarray, image_wh: tuple[int, int]) -> tuple[float, float]:
-        return metrics.peak_point(heat, image_wh)
+                              truth), moved, (pan, tilt)
 
 
 @dataclass
@@ -267,7 +205,7 @@ class Tally:
                 'ms_per_frame': 1000.0 * self.seconds / self.steps if self.steps else None}
 
 
-def run_sequence(sequence: data.Sequence, methods: list[Method], *, max_frames: int | None,
+def run_sequence(sequence: data.Sequence, methods: list[Pointer], *, max_frames: int | None,
                  warmup: int, progress: Progress | None = None,
                  frames_out: list | None = None, auc_jitter: bool = False,
                  camera: PanningCamera | None = None) -> tuple[dict[str, Tally], float]:
@@ -280,30 +218,31 @@ def run_sequence(sequence: data.Sequence, methods: list[Method], *, max_frames: 
     tallies = {m.name: Tally() for m in methods}
     rng = np.random.default_rng(zlib.crc32(sequence.name.encode())) if auc_jitter else None
     for m in methods:
-        m.reset(sequence)
+        m.reset(sequence.name)
     chance = []
     image_wh = (sequence.width, sequence.height)
     if camera is None:
-        stream = ((s, False) for s in sequence.frames(max_frames=max_frames))
+        stream = ((s, False, (0.0, 0.0)) for s in sequence.frames(max_frames=max_frames))
     else:
         stream = camera.frames(sequence, max_frames=max_frames)
         image_wh = camera.screen.size
     cell_wh = metrics.cell_size(GRID, image_wh)
-    for sample, moved in stream:
+    for sample, moved, (pan, tilt) in stream:
         truth = sample.truth
+        view = view_of(sample, sequence.fps, pan=pan, tilt=tilt)
         scored = truth.scored and bool(truth.actors) and sample.index >= warmup
         if scored:
             chance.append(metrics.chance_hit_rate(truth.actors, GRID, image_wh))
             fixations = metrics.fixation_map([b.centre for b in truth.actors], GRID, image_wh)
         for m in methods:
             start = time.perf_counter()
-            heat = m.step(sample.image)
+            pointing = m.locate(view)
             tally = tallies[m.name]
             tally.seconds += time.perf_counter() - start
             tally.steps += 1
             if not scored:
                 continue
-            point = m.peak(heat, image_wh)
+            heat, point = heat_and_point(pointing, image_wh)
             hit = metrics.is_hit(point, truth.actors, cell_wh=cell_wh)
             auc = metrics.auc_judd(heat, fixations, jitter=auc_jitter, rng=rng)
             tally.hits.append(hit)
@@ -320,7 +259,29 @@ def run_sequence(sequence: data.Sequence, methods: list[Method], *, max_frames: 
     return tallies, float(np.mean(chance)) if chance else float('nan')
 
 
-def evaluate(sequences: list[data.Sequence], methods: list[Method], *,
+def view_of(sample: data.Sample, fps: float, *, pan: float = 0.0, tilt: float = 0.0) -> View:
+    """What a pointer is shown of a sample: its image, taken at `world.frame_time` by a
+    camera at (pan, tilt), radians."""
+    h, w = sample.image.shape[:2]
+    actors = np.array([pixel_centre(b) for b in sample.truth.actors], np.float64)
+    return View(sample.image, sample.index, frame_time(sample.index, fps), pan, tilt,
+                actors.reshape(-1, 2), None, np.array([w / 2.0, h / 2.0]))
+
+
+def heat_and_point(pointing: Pointing, image_wh: tuple[int, int]
+                   ) -> tuple[np.ndarray, tuple[float, float]]:
+    """The map and the point a pointer's answer is scored by: a measured map (one with a
+    peak) at its peak cell; a prior (the centre's) at the pointer's location; no map at all
+    (a first frame) as a uniform map, at its first cell like any flat map."""
+    heat = pointing.heat
+    if heat is None:
+        heat = np.full(GRID, 1.0 / (GRID[0] * GRID[1]), np.float32)
+    if pointing.peak is None and pointing.location is not None:
+        return heat, pointing.location
+    return heat, metrics.peak_point(heat, image_wh)
+
+
+def evaluate(sequences: list[data.Sequence], methods: list[Pointer], *,
              max_frames: int | None = None, warmup: int = 1, quiet: bool = False,
              keep_frames: bool = False, auc_jitter: bool = False,
              camera: PanningCamera | None = None) -> dict:
@@ -382,8 +343,9 @@ def evaluate(sequences: list[data.Sequence], methods: list[Method], *,
                **{k: v for k, v in Tally(hits, aucs, moving, border).summary().items()
                   if k in ('hit_rate_moving', 'hit_rate_still', 'border_peaks')},
                'by_camera': by_camera, 'sequences': seqs}
-        if isinstance(m, ModelMethod):
-            row.update(encoder=m.encoder, ablation=m.ablation, config=_plain(m.config))
+        if isinstance(m, ModelPointer):
+            row.update(encoder=m.config.encoder, ablation=m.name.rpartition('/')[2],
+                       config=_plain(m.config))
         results.append(row)
     chance = [i['chance_hit_rate'] for i in info.values()]
     return {'methods': results, 'skipped': skipped,
@@ -477,8 +439,9 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
-def build_methods(args: argparse.Namespace) -> list[Method]:
-    methods: list[Method] = [RandomMap(args.seed), CentreBias(), FrameDiff(), EgoFrameDiff()]
+def build_methods(args: argparse.Namespace) -> list[Pointer]:
+    methods: list[Pointer] = [RandomMap(args.seed), CentreBias(), FrameDiff(),
+                              FrameDiffPointer('framediff-ego')]
     if args.no_model:
         return methods
     ablations = names(args.ablations)
@@ -487,7 +450,7 @@ def build_methods(args: argparse.Namespace) -> list[Method]:
     extra = key_values(args.set, '--set')
     for encoder in names(args.encoder) or [None]:
         for ablation in ablations:
-            methods.append(ModelMethod(encoder, ablation, seed=args.seed, extra=extra))
+            methods.append(model_pointer(encoder, ablation, seed=args.seed, extra=extra))
     return methods
 
 

@@ -38,7 +38,7 @@ class ModelPointer:
         self.model = SurpriseModel(self.config)   # fails now if the weights are missing
         self._fresh = True
 
-    def reset(self) -> None:
+    def reset(self, sequence: str) -> None:
         if not self._fresh:
             frozen = not self.model.train_encoder
             self.model = self._model_class(self.config,
@@ -59,7 +59,7 @@ class TrackerMethod:
         self.tracker = TrackerPointer(kind)
         self.name = self.tracker.name
 
-    def reset(self) -> None:
+    def reset(self, sequence: str) -> None:
         self.tracker.reset()
 
     def locate(self, view: View) -> Pointing:
@@ -71,7 +71,7 @@ class CentrePointer:
 
     name = 'centre'
 
-    def reset(self) -> None:
+    def reset(self, sequence: str) -> None:
         pass
 
     def locate(self, view: View) -> Pointing:
@@ -92,9 +92,9 @@ class RandomPointer:
             raise ConfigError(f'random spread must be > 0, got {spread}')
         self.seed = seed
         self.spread = spread
-        self.reset()
+        self.reset('')
 
-    def reset(self) -> None:
+    def reset(self, sequence: str) -> None:
         self.rng = np.random.default_rng(self.seed)
 
     def locate(self, view: View) -> Pointing:
@@ -112,7 +112,7 @@ class OraclePointer:
 
     name = 'oracle'
 
-    def reset(self) -> None:
+    def reset(self, sequence: str) -> None:
         pass
 
     def locate(self, view: View) -> Pointing:
@@ -143,13 +143,12 @@ class FrameDiffPointer:
     """Frame differencing with the camera's own motion taken out as the model's is
     (`perception.motion.FrameDifference`): steers to the cell that changed most."""
 
-    name = 'framediff'
-
-    def __init__(self):
+    def __init__(self, name: str = 'framediff'):
         from activeloc_ros.perception.motion import FrameDifference
+        self.name = name
         self.diff = FrameDifference()
 
-    def reset(self) -> None:
+    def reset(self, sequence: str) -> None:
         self.diff.reset()
 
     def locate(self, view: View) -> Pointing:
@@ -173,9 +172,9 @@ class Mog2Pointer:
         self.camera = FrameDifference()
         self.width = width
         self.min_share = min_share
-        self.reset()
+        self.reset('')
 
-    def reset(self) -> None:
+    def reset(self, sequence: str) -> None:
         self.camera.reset()
         self.subtractor = None
 
