@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 
 from activeloc_ros.errors import ConfigError, FrameError, WeightsError
-from activeloc_ros.perception import weights
+from activeloc_ros.perception import cache, weights
 from activeloc_ros.perception.encoders import build_encoder, ENCODERS, Encoder, fold_batchnorm
 
 DATA = Path(__file__).parent / 'data'
@@ -64,7 +64,7 @@ def forbid_network(mp: pytest.MonkeyPatch) -> None:
 
 def require_cached(name: str) -> None:
     try:
-        weights.weights_path(name)
+        cache.weights_path(name)
     except WeightsError as e:
         if os.environ.get('CI'):
             pytest.fail(f'CI fetches the weights before the tests, yet: {e}')
@@ -175,7 +175,7 @@ def test_preprocess_rejects_a_frame_of_the_wrong_shape():
 
 @pytest.mark.parametrize('name', ENCODERS)
 def test_random_weights_need_no_cache(monkeypatch, tmp_path, name):
-    monkeypatch.setenv(weights.CACHE_ENV, str(tmp_path))
+    monkeypatch.setenv(cache.CACHE_ENV, str(tmp_path))
     forbid_network(monkeypatch)
     enc = build_encoder(name, pretrained=False, classifier=False)
     with torch.inference_mode():
@@ -189,7 +189,7 @@ def test_random_weights_need_no_cache(monkeypatch, tmp_path, name):
 
 @pytest.mark.parametrize('name', weights.FETCHABLE)
 def test_empty_cache_names_the_fetch_command(monkeypatch, tmp_path, name):
-    monkeypatch.setenv(weights.CACHE_ENV, str(tmp_path))
+    monkeypatch.setenv(cache.CACHE_ENV, str(tmp_path))
     with pytest.raises(WeightsError) as info:
         build_encoder(name)
     assert f'python -m activeloc_ros.perception.weights fetch --encoders {name}' in str(
@@ -337,9 +337,9 @@ def test_state_digest_survives_a_save_and_sees_one_changed_value():
     torch.save(state, buf)
     buf.seek(0)
     again = torch.load(buf, weights_only=True)
-    assert weights.state_digest(again) == weights.state_digest(state)
+    assert cache.state_digest(again) == cache.state_digest(state)
     again['b'][1, 2] += 1
-    assert weights.state_digest(again) != weights.state_digest(state)
+    assert cache.state_digest(again) != cache.state_digest(state)
 
 
 @pytest.mark.parametrize('damage', ['zeroed', 'one_value'])
@@ -347,7 +347,7 @@ def test_a_cached_file_of_the_right_name_but_wrong_weights_is_refused(tmp_path, 
     """A zeroed or altered file would load and give features of nothing: the digest the
     cache file is named by must match."""
     require_cached('efficientnet_lite0')
-    good = weights.weights_path('efficientnet_lite0')
+    good = cache.weights_path('efficientnet_lite0')
     bad = tmp_path / good.name
     if damage == 'zeroed':
         bad.write_bytes(bytes(good.stat().st_size))
@@ -358,7 +358,7 @@ def test_a_cached_file_of_the_right_name_but_wrong_weights_is_refused(tmp_path, 
         torch.save(state, bad)
         match = 'not the ones fetched'
     with pytest.raises(WeightsError, match=match) as info:
-        weights.weights_path('efficientnet_lite0', cache=tmp_path)
+        cache.weights_path('efficientnet_lite0', cache=tmp_path)
     assert 'fetch' in str(info.value)
 
 
@@ -366,7 +366,7 @@ def test_fetch_is_a_no_op_when_the_cache_is_current(monkeypatch, capsys):
     require_cached('efficientnet_lite0')
     forbid_network(monkeypatch)
     paths = weights.fetch(['efficientnet_lite0'])
-    assert paths['efficientnet_lite0'] == weights.weights_path('efficientnet_lite0')
+    assert paths['efficientnet_lite0'] == cache.weights_path('efficientnet_lite0')
     err = capsys.readouterr().err
     assert 'up to date' in err
     assert 'Apache-2.0' in err
@@ -395,7 +395,7 @@ def test_write_state_leaves_nothing_behind_on_a_bad_digest(tmp_path):
         weights.write_state({'w': torch.ones(3)}, path, '0' * 64)
     assert list(tmp_path.iterdir()) == []
     state = {'w': torch.ones(3)}
-    weights.write_state(state, path, weights.state_digest(state))
+    weights.write_state(state, path, cache.state_digest(state))
     assert [p.name for p in tmp_path.iterdir()] == ['x.pt']
 
 

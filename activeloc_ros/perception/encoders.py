@@ -41,6 +41,7 @@ import torch.nn.functional as F
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from activeloc_ros.errors import ConfigError, FrameError, WeightsError
+from activeloc_ros.perception.cache import read_state_dict, weights_path
 
 ENCODERS = ('vgg16', 'vgg19', 'efficientnet_lite0', 'resnet50')
 INPUT_SIZE = 224
@@ -532,21 +533,6 @@ def check_layout(name: str, state: Mapping[str, torch.Tensor], *,
     return has_head
 
 
-def read_state_dict(path: Path) -> dict[str, torch.Tensor]:
-    """Load a state dict file (tensors only, no pickled code) or raise WeightsError."""
-    if not path.is_file():
-        raise WeightsError(f'weights file {path} does not exist')
-    try:
-        state = torch.load(path, map_location='cpu', weights_only=True)
-    except Exception as e:  # torch raises many types for a corrupt or foreign file
-        raise WeightsError(f'cannot read {path} as a torch state dict: {e}') from e
-    if not isinstance(state, Mapping) or not all(
-            isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()):
-        raise WeightsError(f'{path} holds a {type(state).__name__}, not a plain state dict '
-                           'of tensors')
-    return dict(state)
-
-
 def load_encoder(name: str, state: Mapping[str, torch.Tensor], *, source: str,
                  classifier: bool = True) -> Encoder:
     """An encoder holding `state`'s tensors (float32), in eval mode."""
@@ -586,8 +572,6 @@ def build_encoder(name: str, *, weights: str | Path | None = None, pretrained: b
             raise ConfigError('weights were given but pretrained=False asks for random ones')
         return make_encoder(name, head=classifier).eval()
     if weights is None:
-        # Imported here because weights.py imports this module for the layouts.
-        from activeloc_ros.perception.weights import weights_path
         path = weights_path(name)
     else:
         path = Path(weights).expanduser()

@@ -99,12 +99,12 @@ class Features:
                               f'encoder stride {stride} below {self.size}, got '
                               f'{cfg.encoder_pad}')
         if precision == 'int8':
-            from activeloc_ros.perception import int8, weights
+            from activeloc_ros.perception import cache, int8
             side = self.size + 2 * cfg.encoder_pad
             self.frozen_encoder = int8.load(
                 self.frozen_encoder, name=cfg.encoder, input_shape=(1, 3, side, side),
                 prepare=lambda rgb: self.padded(self.tensor(self.resize(rgb))),
-                threads=torch.get_num_threads(), cache=weights.cache_dir())
+                threads=torch.get_num_threads(), cache=cache.cache_dir())
 
     def preprocess(self, frame: np.ndarray) -> torch.Tensor | None:
         """(H, W, 3) RGB 0..255 -> (1, 3, S, S) normalised encoder input; None if not finite."""

