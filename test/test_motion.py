@@ -44,7 +44,7 @@ def test_a_shifted_still_picture_leaves_no_change_once_the_shift_is_taken_out():
 @pytest.mark.parametrize('make', [FrameDiffPointer, Mog2Pointer])
 def test_the_motion_anchors_point_at_the_moving_target(make):
     pointer = make()
-    pointer.reset()
+    pointer.reset('square')
     errors = []
     for i, (frame, (u, v)) in enumerate(moving_target(12)):
         answer = pointer.locate(view(frame, i))
@@ -57,7 +57,7 @@ def test_the_motion_anchors_point_at_the_moving_target(make):
 @pytest.mark.parametrize('make', [FrameDiffPointer, Mog2Pointer])
 def test_a_still_scene_gives_no_location(make):
     pointer = make()
-    pointer.reset()
+    pointer.reset('square')
     frame = moving_target(1)[0][0]
     answers = [pointer.locate(view(frame, i)) for i in range(5)]
     assert all(a.location is None for a in answers[1:])
