@@ -56,10 +56,10 @@ setup(
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
-            'camera_node = activeloc_ros.camera_node:main',
-            'perception_node = activeloc_ros.perception_node:main',
-            'controller_node = activeloc_ros.controller_node:main',
-            'arm_node = activeloc_ros.arm_node:main',
+            'camera_node = activeloc_ros.nodes.camera_node:main',
+            'perception_node = activeloc_ros.nodes.perception_node:main',
+            'controller_node = activeloc_ros.nodes.controller_node:main',
+            'arm_node = activeloc_ros.nodes.arm_node:main',
             'bringup = activeloc_ros.bringup:main',
         ],
     },

@@ -43,7 +43,7 @@ import numpy as np
 import yaml
 
 from activeloc_ros.errors import ActivelocError, ConfigError, SourceError
-from activeloc_ros.messages import stamp_s
+from activeloc_ros.nodes.messages import stamp_s
 from activeloc_ros.paths import params_files
 from activeloc_ros.screen import AIM_LIMITS
 from activeloc_ros.sources import default_bag
@@ -168,7 +168,7 @@ def own_ros_args(args) -> list[str] | None:
 
 def camera_screen(files=()):
     """The virtual screen a `virtual:` camera renders, from the camera's `node_values`."""
-    from activeloc_ros.camera_node import SCREEN_FIELDS
+    from activeloc_ros.nodes.camera_node import SCREEN_FIELDS
     from activeloc_ros.screen import ScreenConfig, VirtualScreen
     values = node_values('camera', files)
     return VirtualScreen(ScreenConfig(**{field: values[name]
@@ -180,7 +180,7 @@ def screen_aim_limits(camera: str, files) -> dict[str, float]:
     screen, as the screen benchmark sets them; limits set in the user's `files` win."""
     if not camera.startswith('virtual:'):
         return {}
-    from activeloc_ros.ros_params import file_values
+    from activeloc_ros.nodes.ros_params import file_values
     screen = camera_screen(files)
     own = file_values('controller', files)
     return {name: limit
@@ -244,15 +244,15 @@ def writable_folder(path: Path, option: str) -> None:
 def node_params(node: str) -> list:
     """The parameters a node declares."""
     if node == 'perception':
-        from activeloc_ros.perception_node import model_params, NODE_PARAMS
+        from activeloc_ros.nodes.perception_node import model_params, NODE_PARAMS
         return model_params() + NODE_PARAMS
-    return list(importlib.import_module(f'activeloc_ros.{node}_node').PARAMS)
+    return list(importlib.import_module(f'activeloc_ros.nodes.{node}_node').PARAMS)
 
 
 def node_values(node: str, files=()) -> dict:
     """A node's parameter values before it starts: its declared defaults, overlaid with its
     packaged params files (`paths.params_files`), then the user's params `files`."""
-    from activeloc_ros.ros_params import file_values
+    from activeloc_ros.nodes.ros_params import file_values
     values = {p.name: p.default for p in node_params(node)}
     values.update(file_values(node, [*params_files(node), *files]))
     return values
@@ -260,7 +260,7 @@ def node_values(node: str, files=()) -> dict:
 
 def cli_values(ros_args: list[str]) -> dict:
     """The ``-p name:=value`` settings among ROS arguments, typed as rcl types them."""
-    from activeloc_ros.ros_params import parse_value
+    from activeloc_ros.nodes.ros_params import parse_value
     values = {}
     for flag, item in zip(ros_args, ros_args[1:]):
         if flag in ('-p', '--param') and ':=' in item:
@@ -272,7 +272,7 @@ def cli_values(ros_args: list[str]) -> dict:
 def check_node_params(args) -> None:
     """Check every node's parameters, from its files and bringup's options, as the node
     checks them at start, so that a bad value stops the run before any node starts."""
-    from activeloc_ros.ros_params import files_problems, validate
+    from activeloc_ros.nodes.ros_params import files_problems, validate
     problems = []
     for node in NODES:
         params = node_params(node)
@@ -290,7 +290,7 @@ def node_problems(node: str, values: dict) -> list[str]:
     """The checks across parameters that a node makes at start."""
     try:
         if node == 'controller':
-            from activeloc_ros.controller_node import config_from
+            from activeloc_ros.nodes.controller_node import config_from
             config_from(values)
         elif node == 'perception':
             from activeloc_ros.perception.config import PerceptionConfig
@@ -411,7 +411,7 @@ class Child:
     def __init__(self, node: str, args, log_dir: Path, env):
         self.name = node
         self.log_path = log_dir / f'{node}.log'
-        module = f'activeloc_ros.{node}_node'
+        module = f'activeloc_ros.nodes.{node}_node'
         self.log = open(self.log_path, 'w')
         self.process = subprocess.Popen(
             [sys.executable, '-u', '-m', module] + node_arguments(node, args),
@@ -453,10 +453,10 @@ class InProcessGraph:
 
     def __init__(self, args, context):
         from rclpy.executors import MultiThreadedExecutor
-        from activeloc_ros.arm_node import ArmNode
-        from activeloc_ros.camera_node import CameraNode
-        from activeloc_ros.controller_node import ControllerNode
-        from activeloc_ros.perception_node import PerceptionNode
+        from activeloc_ros.nodes.arm_node import ArmNode
+        from activeloc_ros.nodes.camera_node import CameraNode
+        from activeloc_ros.nodes.controller_node import ControllerNode
+        from activeloc_ros.nodes.perception_node import PerceptionNode
         classes = {'camera': CameraNode, 'perception': PerceptionNode,
                    'controller': ControllerNode, 'arm': ArmNode}
         self.context = context
@@ -555,7 +555,7 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
     watch.add_node(monitor.node)
     recorder = None
     if args.record is not None:
-        from activeloc_ros.recorder import RecorderNode
+        from activeloc_ros.nodes.recorder import RecorderNode
         expected = dict(GRAPH_TOPICS)
         if args.camera.startswith('virtual:'):
             expected['camera/pose'] = 'sensor_msgs/msg/JointState'

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from activeloc_ros.recorder import message_class
+from activeloc_ros.nodes.recorder import message_class
 
 
 def format_message(msg) -> str:

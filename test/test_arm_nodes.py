@@ -41,7 +41,7 @@ class Probe:
 
 @pytest.fixture
 def arm_graph(context):
-    from activeloc_ros.arm_node import ArmNode
+    from activeloc_ros.nodes.arm_node import ArmNode
     made = []
 
     def make(*overrides):
@@ -136,7 +136,7 @@ def test_sim_arm_stops_on_purpose(arm_graph, mode):
 @pytest.mark.parametrize('override', ['backend:=arm', 'home_deg:=[90,90,45]',
                                       'step_delay_ms:=40', 'baud:=1234'])
 def test_bad_parameters_are_refused(context, override):
-    from activeloc_ros.arm_node import ArmNode
+    from activeloc_ros.nodes.arm_node import ArmNode
     with pytest.raises(ConfigError):
         ArmNode(context=context, cli_args=params_args('arm', override))
 
@@ -183,7 +183,7 @@ BAD_COMMANDS = [
 
 @pytest.mark.parametrize('names, positions, why', BAD_COMMANDS)
 def test_parse_command_says_why_a_command_is_malformed(names, positions, why):
-    from activeloc_ros.arm_node import parse_command
+    from activeloc_ros.nodes.arm_node import parse_command
     target, reason = parse_command(JointState(name=names, position=positions), HOME_DEG)
     assert target is None and why in reason
 
@@ -274,7 +274,7 @@ def test_the_arm_process_exits_1_with_the_reason_when_the_port_is_missing(tmp_pa
     from conftest import REPO
     missing = str(tmp_path / 'ttyNothing')
     process = subprocess.run(
-        [sys.executable, '-m', 'activeloc_ros.arm_node',
+        [sys.executable, '-m', 'activeloc_ros.nodes.arm_node',
          *params_args('arm', 'backend:=serial', f'port:={missing}', 'give_up_timeout:=0.3',
                       'reconnect_period:=0.1')],
         cwd=REPO, capture_output=True, text=True, timeout=60)

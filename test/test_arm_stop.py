@@ -39,7 +39,7 @@ def launch(tmp_path):
     def start(module: str, *overrides: str) -> subprocess.Popen:
         log = open(tmp_path / f'{module}.log', 'w')
         process = subprocess.Popen(
-            [sys.executable, '-m', f'activeloc_ros.{module}',
+            [sys.executable, '-m', f'activeloc_ros.nodes.{module}',
              *params_args(module.removesuffix('_node'), *overrides)],
             cwd=REPO, env=dict(os.environ, PYTHONUNBUFFERED='1'), stdout=log,
             stderr=subprocess.STDOUT)

@@ -52,7 +52,7 @@ class Probe:
 
 @pytest.fixture
 def graph(context):
-    from activeloc_ros.controller_node import ControllerNode
+    from activeloc_ros.nodes.controller_node import ControllerNode
     made = []
 
     def make(*overrides):
@@ -115,13 +115,13 @@ def test_watchdog_holds_once_when_locations_stop(graph):
     ('kp:=-1.0', 'kp'), ('kp:=1', 'kp'), ('step_delay_ms:=5', 'step_delay_ms'),
     ('pd_variant:=pid', 'pd_variant'), ('home_deg:=[90,5,45,45,90,73]', 'home_deg')])
 def test_bad_parameters_are_refused_by_name(context, override, message):
-    from activeloc_ros.controller_node import ControllerNode
+    from activeloc_ros.nodes.controller_node import ControllerNode
     with pytest.raises(ConfigError, match=message):
         ControllerNode(context=context, cli_args=params_args('controller', override))
 
 
 def test_pd_variant_overrides_the_gains(context):
-    from activeloc_ros.controller_node import ControllerNode
+    from activeloc_ros.nodes.controller_node import ControllerNode
     node = ControllerNode(context=context, cli_args=params_args('controller',
                                                                 'pd_variant:=low_p'))
     try:
@@ -137,8 +137,8 @@ def test_closed_loop_with_the_sim_arm_centres_a_still_action(context):
     Each view is stamped with the time of the joint state it was rendered from; stamped
     later, the controller pairs it with a newer pose and the loop can settle into a
     two-step oscillation."""
-    from activeloc_ros.arm_node import ArmNode
-    from activeloc_ros.controller_node import ControllerNode
+    from activeloc_ros.nodes.arm_node import ArmNode
+    from activeloc_ros.nodes.controller_node import ControllerNode
     controller = ControllerNode(context=context, cli_args=params_args('controller'))
     arm = ArmNode(context=context, cli_args=params_args('arm', 'backend:=sim'))
     probe = Probe(context)

@@ -40,10 +40,10 @@ class Probe:
 
 
 def test_graph_in_one_executor(context):
-    from activeloc_ros.arm_node import ArmNode
-    from activeloc_ros.camera_node import CameraNode
-    from activeloc_ros.controller_node import ControllerNode
-    from activeloc_ros.perception_node import PerceptionNode
+    from activeloc_ros.nodes.arm_node import ArmNode
+    from activeloc_ros.nodes.camera_node import CameraNode
+    from activeloc_ros.nodes.controller_node import ControllerNode
+    from activeloc_ros.nodes.perception_node import PerceptionNode
     # the bag loops, so however fast this machine's perception is, maps keep coming
     nodes = [CameraNode(context=context, cli_args=params_args('camera', 'loop:=true')),
              PerceptionNode(context=context, cli_args=params_args('perception')),
@@ -87,7 +87,7 @@ def test_graph_in_one_executor(context):
 
 def test_unsupported_images_are_skipped_and_logged_once(context):
     from sensor_msgs.msg import Image
-    from activeloc_ros.perception_node import PerceptionNode
+    from activeloc_ros.nodes.perception_node import PerceptionNode
     node = PerceptionNode(context=context, cli_args=params_args('perception'))
     probe = Probe(context)
     pub = probe.node.create_publisher(Image, 'camera/image_raw', 10)
@@ -130,8 +130,8 @@ def test_unsupported_images_are_skipped_and_logged_once(context):
     ('perception', 'publish_overlay:=true', None),     # valid: no error
 ])
 def test_invalid_parameters_name_the_parameter(context, node_name, override, param):
-    from activeloc_ros.camera_node import CameraNode
-    from activeloc_ros.perception_node import PerceptionNode
+    from activeloc_ros.nodes.camera_node import CameraNode
+    from activeloc_ros.nodes.perception_node import PerceptionNode
     cls = {'camera': CameraNode, 'perception': PerceptionNode}[node_name]
     args = params_args(node_name, override)
     if param is None:

@@ -1,11 +1,11 @@
-"""The message conversions every node shares (`activeloc_ros.messages`)."""
+"""The message conversions every node shares (`activeloc_ros.nodes.messages`)."""
 import math
 
 import pytest
 from sensor_msgs.msg import JointState
 
 from activeloc_ros.control import JOINT_NAMES
-from activeloc_ros.messages import (
+from activeloc_ros.nodes.messages import (
     arm_joints_deg, joint_state, stamp_ns, stamp_s, time_from_ns, time_from_s)
 
 

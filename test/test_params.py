@@ -8,10 +8,10 @@ from conftest import PARAMS, params_args
 
 
 def node_class(name):
-    from activeloc_ros.arm_node import ArmNode
-    from activeloc_ros.camera_node import CameraNode
-    from activeloc_ros.controller_node import ControllerNode
-    from activeloc_ros.perception_node import PerceptionNode
+    from activeloc_ros.nodes.arm_node import ArmNode
+    from activeloc_ros.nodes.camera_node import CameraNode
+    from activeloc_ros.nodes.controller_node import ControllerNode
+    from activeloc_ros.nodes.perception_node import PerceptionNode
     return {'camera': CameraNode, 'perception': PerceptionNode,
             'controller': ControllerNode, 'arm': ArmNode}[name]
 
@@ -108,7 +108,7 @@ def test_a_shared_params_file_is_accepted(context, tmp_path, text):
 
 
 def test_an_unreadable_params_file_stops_the_process_with_its_line(tmp_path, capsys):
-    from activeloc_ros.arm_node import main
+    from activeloc_ros.nodes.arm_node import main
     path = user_file(tmp_path, '/arm:\n  ros__parameters:\n    stop_mode: [1\n')
     assert main(['arm_node', '--ros-args', '--params-file', path]) == 1
     error = capsys.readouterr().err
@@ -117,7 +117,7 @@ def test_an_unreadable_params_file_stops_the_process_with_its_line(tmp_path, cap
 
 def test_params_file_problems_is_a_pure_function():
     from rclpy.parameter import Parameter
-    from activeloc_ros.ros_params import params_file_problems
+    from activeloc_ros.nodes.ros_params import params_file_problems
     declared = {'kp': Parameter.Type.DOUBLE, 'tilt_joints': Parameter.Type.STRING_ARRAY}
     content = {'/**': {'ros__parameters': {'kp': 2.0, 'stop_mode': 'home',
                                            'tilt_joints': ['a', 1]}},

@@ -19,7 +19,7 @@ def rig(context):
     """A perception node (real weights, packaged params) and a probe node in one executor."""
     from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import Image
-    from activeloc_ros.perception_node import PerceptionNode
+    from activeloc_ros.nodes.perception_node import PerceptionNode
     made = []
 
     def make(*overrides):
@@ -103,7 +103,7 @@ def test_compressed_frames_are_decoded(rig):
 
 def test_an_oversized_frame_is_skipped_and_reported(rig):
     from sensor_msgs.msg import Image
-    from activeloc_ros.health import WARN
+    from activeloc_ros.nodes.health import WARN
     executor, node, probe, heard = rig(f'max_image_pixels:={60 * 80 - 1}')
     publisher = probe.create_publisher(Image, 'camera/image_raw', 10)
     assert feed(executor, publisher, image(), lambda: node.stats.skipped)

@@ -12,7 +12,7 @@ import pytest
 from activeloc_ros.control import JOINT_NAMES, SimArm
 from activeloc_ros.control.braccio import ArmMapping, HOME_DEG
 from activeloc_ros.errors import ConfigError, SourceError
-from activeloc_ros.lockstep import (
+from activeloc_ros.nodes.lockstep import (
     LATE_COMMAND, Lockstep, NO_COMMAND, NO_LOCATION, NO_POSE, NOT_APPLIED, time_ns)
 from activeloc_ros.screen import VirtualScreen
 from activeloc_ros.sources import default_bag, open_source, SequenceSource, VirtualSource
@@ -236,8 +236,8 @@ SIM = 'use_sim_time:=true'
     ('arm', ['backend:=serial', SIM], 'use_sim_time must be false'),
 ])
 def test_bad_virtual_and_lockstep_settings(context, node_name, extra, message):
-    from activeloc_ros.arm_node import ArmNode
-    from activeloc_ros.camera_node import CameraNode
+    from activeloc_ros.nodes.arm_node import ArmNode
+    from activeloc_ros.nodes.camera_node import CameraNode
     cls = {'camera': CameraNode, 'arm': ArmNode}[node_name]
     with pytest.raises((ConfigError, SourceError), match=message):
         cls(context=context, cli_args=params_args(node_name, *extra))
@@ -269,7 +269,7 @@ def stamp_ns(msg) -> int:
 def test_realtime_virtual_camera_follows_joint_states(context):
     from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
-    from activeloc_ros.camera_node import CameraNode
+    from activeloc_ros.nodes.camera_node import CameraNode
     camera = CameraNode(context=context, cli_args=params_args(
         'camera', f'source:=virtual:bag:{default_bag()}', 'rate:=5.0', 'loop:=true',
         'wait_for_subscriber:=0.0'))
@@ -303,10 +303,10 @@ def test_lockstep_graph_steps_frame_by_frame_like_closed_loop(context):
     simulated arm is when every command is applied at its frame's time (closed_loop's
     lockstep)."""
     from rclpy.executors import MultiThreadedExecutor
-    from activeloc_ros.arm_node import ArmNode
-    from activeloc_ros.camera_node import CameraNode
-    from activeloc_ros.controller_node import ControllerNode
-    from activeloc_ros.perception_node import PerceptionNode
+    from activeloc_ros.nodes.arm_node import ArmNode
+    from activeloc_ros.nodes.camera_node import CameraNode
+    from activeloc_ros.nodes.controller_node import ControllerNode
+    from activeloc_ros.nodes.perception_node import PerceptionNode
     frames = 8
     nodes = [PerceptionNode(context=context, cli_args=params_args('perception', SIM)),
              ControllerNode(context=context, cli_args=params_args('controller', SIM)),
@@ -391,7 +391,7 @@ def test_bringup_aim_limits_are_the_arms_or_on_request_the_screens(tmp_path):
 
 def test_recorded_poses_read_back_per_frame(tmp_path):
     from activeloc_ros.bag import BagWriter
-    from activeloc_ros.lockstep import recorded_poses
+    from activeloc_ros.nodes.lockstep import recorded_poses
     writer = BagWriter(tmp_path / 'run')
     types = writer.store.types
 

@@ -27,7 +27,7 @@ from activeloc_ros.sources import default_bag, open_scene
 
 def bench_poses(scene: str, frames: int) -> list[tuple[float, float, float]]:
     """(t, pan, tilt) per frame of the benchmark's closed loop on the scene."""
-    from activeloc_ros.controller_node import config_from
+    from activeloc_ros.nodes.controller_node import config_from
     from activeloc_ros.perception.config import PerceptionConfig
     source = open_scene(scene)
     fps = source.fps
@@ -53,7 +53,7 @@ def bench_poses(scene: str, frames: int) -> list[tuple[float, float, float]]:
 
 def graph_poses(scene: str, frames: int, record: Path) -> list[tuple[float, float, float]]:
     """(t, pan, tilt) per frame of a lockstep bringup run recorded to `record`."""
-    from activeloc_ros.lockstep import recorded_poses
+    from activeloc_ros.nodes.lockstep import recorded_poses
     params = record.parent / f'{record.name}-camera.yaml'
     params.write_text(yaml.safe_dump(
         {'camera': {'ros__parameters': {'max_frames': frames}}}))

@@ -3,7 +3,7 @@
 Subscribes `camera/image_raw` (sensor_msgs/Image; with `image_transport: compressed`,
 `camera/image_raw/compressed`, sensor_msgs/CompressedImage) with depth 1, so the newest
 frame wins, and with the reliability its publishers offer (`image_reliability: auto`,
-`activeloc_ros.qos`): a best-effort camera (SensorDataQoS) is heard, and a reliable one
+`activeloc_ros.nodes.qos`): a best-effort camera (SensorDataQoS) is heard, and a reliable one
 loses no large frame on the way. Publishes
 `surprise_map` (std_msgs/Float32MultiArray, 14 rows x 14 cols), `surprise_map/image` (the
 same map as a 32FC1 sensor_msgs/Image with the frame's header), `surprise_map/overlay`
@@ -30,14 +30,14 @@ from std_msgs.msg import Float32MultiArray, Header, MultiArrayDimension
 
 from activeloc_ros.checks import in_range, one_of, positive
 from activeloc_ros.errors import FrameError
-from activeloc_ros.health import PipelineStats
+from activeloc_ros.nodes.health import PipelineStats
 from activeloc_ros.images import (decode_compressed, float_image_fields, image_to_rgb, overlay,
                                   rgb_to_image_fields)
 from activeloc_ros.perception.config import PerceptionConfig
 from activeloc_ros.perception.model import PerceptionResult, SurpriseModel
 from activeloc_ros.perception.pipeline import Pipeline
-from activeloc_ros.qos import offered_reliability
-from activeloc_ros.ros_params import declare, Param, run
+from activeloc_ros.nodes.qos import offered_reliability
+from activeloc_ros.nodes.ros_params import declare, Param, run
 
 RELIABILITY = {'best_effort': ReliabilityPolicy.BEST_EFFORT,
                'reliable': ReliabilityPolicy.RELIABLE}

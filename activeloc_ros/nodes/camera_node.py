@@ -7,7 +7,7 @@ virtual screen (`screen.VirtualScreen`), seen by a camera the arm aims. The node
 subscribes `joint_states` (the arm's pose aims the camera) and publishes `camera/pose`
 (sensor_msgs/JointState named pan, tilt: radians, stamped like the image it rendered).
 With `lockstep` (and `use_sim_time` on every node) the node owns a simulated `/clock` and
-steps the graph frame by frame as `closed_loop` does (`activeloc_ros.lockstep`).
+steps the graph frame by frame as `closed_loop` does (`activeloc_ros.nodes.lockstep`).
 """
 import math
 import time
@@ -23,11 +23,11 @@ from sensor_msgs.msg import CameraInfo, Image, JointState
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
 from activeloc_ros.errors import ConfigError, SourceError
 from activeloc_ros.images import rgb_to_image_fields
-from activeloc_ros.lockstep import IDLE, Lockstep
-from activeloc_ros.messages import arm_joints_deg, stamp_ns, time_from_ns, time_from_s
-from activeloc_ros.ros_params import declare, Param, run
+from activeloc_ros.nodes.lockstep import IDLE, Lockstep
+from activeloc_ros.nodes.messages import arm_joints_deg, stamp_ns, time_from_ns, time_from_s
+from activeloc_ros.nodes.ros_params import declare, Param, run
 from activeloc_ros.screen import ScreenConfig, VirtualScreen
-from activeloc_ros.settings import MAPPING_PARAMS, mapping_from
+from activeloc_ros.nodes.settings import MAPPING_PARAMS, mapping_from
 from activeloc_ros.sources import default_bag, open_source, Pacer, pinhole_matrix
 
 # camera parameter -> ScreenConfig field

@@ -23,9 +23,9 @@ from activeloc_ros.control import (
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.pd import DERIVATIVE_MODES
 from activeloc_ros.errors import ConfigError
-from activeloc_ros.messages import arm_joints_deg, joint_state, stamp_s
-from activeloc_ros.ros_params import declare, Param, run
-from activeloc_ros.settings import MAPPING_PARAMS, mapping_from
+from activeloc_ros.nodes.messages import arm_joints_deg, joint_state, stamp_s
+from activeloc_ros.nodes.ros_params import declare, Param, run
+from activeloc_ros.nodes.settings import MAPPING_PARAMS, mapping_from
 
 
 # The gains, limits and filters apply at once when set at run time (ros2 param set); the

@@ -19,7 +19,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from activeloc_ros.bag import BagWriter, RecordingError
-from activeloc_ros.qos import offered_reliability
+from activeloc_ros.nodes.qos import offered_reliability
 
 IGNORED = ('/rosout', '/parameter_events')
 QUEUE_DEPTH = 100       # messages a subscription holds while the writer is busy

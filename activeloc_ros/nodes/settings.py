@@ -6,7 +6,7 @@ which steers through it, and by the virtual camera, which renders what the arm a
 """
 from activeloc_ros.checks import one_of
 from activeloc_ros.control import ArmMapping, HOME_DEG, JOINT_NAMES, pose_problem
-from activeloc_ros.ros_params import Param
+from activeloc_ros.nodes.ros_params import Param
 
 
 def _joint_names(value) -> 'str | None':

@@ -9,7 +9,7 @@ where it is, or goes home slowly (``stop_mode``), before the node ends.
 On a simulated clock (``use_sim_time``, sim back end only) the arm moves with ``/clock``:
 it answers every clock message with its state at that time and every command with its
 state once applied, and publishes nothing on a timer, so a lockstep camera can count the
-answers (``activeloc_ros.lockstep``). Its clock starts at 0, as in ``closed_loop``.
+answers (``activeloc_ros.nodes.lockstep``). Its clock starts at 0, as in ``closed_loop``.
 
 Any command a topic can carry is safe: a malformed one (unknown or repeated names, lengths
 that differ, a position that is not a finite angle in degrees, such as 1e308 rad) is logged
@@ -36,8 +36,8 @@ from activeloc_ros.control import (
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.serial_link import BraccioLink
 from activeloc_ros.errors import ConfigError
-from activeloc_ros.messages import joint_state, stamp_ns, time_from_ns
-from activeloc_ros.ros_params import declare, Param, run
+from activeloc_ros.nodes.messages import joint_state, stamp_ns, time_from_ns
+from activeloc_ros.nodes.ros_params import declare, Param, run
 
 
 # Set at run time, a parameter applies at once, except those that fix the hardware or the
