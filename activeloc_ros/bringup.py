@@ -5,11 +5,11 @@
     python -m activeloc_ros.bringup --camera device:0 --duration 60
     python -m activeloc_ros.bringup --record out/run1    # every topic to an MCAP bag
 
-Each node runs in its own process (as a launch file would) with its `params/<node>.yaml`,
-or all in one executor with --in-process. A status line shows frames/s, frame-to-command
-latency (lockstep: the simulated time) and the action location; Ctrl-C stops the nodes in
-order (the arm last, holding still) and a summary closes the run. Exits non-zero if a node
-fails, logs an error, the recording fails or nothing was seen.
+Each node runs in its own process (as a launch file would) with `params/robot.yaml` and
+its `params/<node>.yaml`, or all in one executor with --in-process. A status line shows
+frames/s, frame-to-command latency (lockstep: the simulated time) and the action location;
+Ctrl-C stops the nodes in order (the arm last, holding still) and a summary closes the run.
+Exits non-zero if a node fails, logs an error, the recording fails or nothing was seen.
 
 Ctrl-C (once or more) and SIGTERM stop the graph the same way and close the bag; the nodes
 also end if bringup itself is killed (they get SIGTERM when their parent dies), and a bag
