@@ -3,8 +3,10 @@ import math
 import os
 from pathlib import Path
 import signal
+import re
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -267,6 +269,9 @@ def gone(pid: int) -> bool:
         return True
 
 
+MAPS_SEEN = re.compile(r'\| maps +([0-9.]+) fps')     # bringup's status line
+
+
 @pytest.mark.parametrize('how', ['SIGINT twice', 'SIGTERM', 'SIGKILL'])
 def test_bringup_stopped_by_a_signal_leaves_no_node_and_a_readable_bag(tmp_path, graph_env,
                                                                        how):
@@ -277,14 +282,27 @@ def test_bringup_stopped_by_a_signal_leaves_no_node_and_a_readable_bag(tmp_path,
         [sys.executable, '-m', 'activeloc_ros.bringup', '--loop', '--record', str(record),
          '--log-dir', str(tmp_path / 'logs'), '--ros-args', '-r', '__ns:=/robot1'],
         env=graph_env, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines: list[str] = []
+
+    def read():
+        for line in bringup.stdout:
+            lines.append(line)
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
     try:
-        # maps published before DDS has matched bringup's own subscription are lost to it
-        # (volatile topics), and a run whose monitor saw none exits 1: wait for several
         echo = subprocess.run(
             [sys.executable, '-m', 'activeloc_ros.echo', '/robot1/surprise_map', '--count',
              '5', '--timeout', '150'], env=graph_env, cwd=REPO, capture_output=True,
             text=True, timeout=200)
         assert echo.returncode == 0, echo.stderr
+        # maps published before DDS has matched bringup's own subscriptions are lost to them
+        # (volatile topics), and a run whose monitor saw none exits 1: an outside echo
+        # having maps is not enough, wait for bringup's status line to count some
+        deadline = time.monotonic() + 150
+        while time.monotonic() < deadline and not any(
+                float(m.group(1)) > 0 for m in map(MAPS_SEEN.search, list(lines)) if m):
+            time.sleep(0.2)
         nodes = node_pids(bringup.pid)
         assert len(nodes) == 4
         if how == 'SIGINT twice':
@@ -293,7 +311,9 @@ def test_bringup_stopped_by_a_signal_leaves_no_node_and_a_readable_bag(tmp_path,
             bringup.send_signal(signal.SIGINT)
         else:
             bringup.send_signal(getattr(signal, how))
-        out, _ = bringup.communicate(timeout=60)
+        bringup.wait(timeout=60)
+        reader.join(timeout=10)
+        out = ''.join(lines)
     finally:
         bringup.kill()
     deadline = time.monotonic() + 30
