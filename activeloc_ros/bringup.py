@@ -168,11 +168,9 @@ def own_ros_args(args) -> list[str] | None:
 
 def camera_screen(files=()):
     """The virtual screen a `virtual:` camera renders, from the camera's `node_values`."""
-    from activeloc_ros.nodes.camera_node import SCREEN_FIELDS
-    from activeloc_ros.screen import ScreenConfig, VirtualScreen
-    values = node_values('camera', files)
-    return VirtualScreen(ScreenConfig(**{field: values[name]
-                                         for name, field in SCREEN_FIELDS.items()}))
+    from activeloc_ros.nodes.settings import screen_from
+    from activeloc_ros.screen import VirtualScreen
+    return VirtualScreen(screen_from(node_values('camera', files)))
 
 
 def screen_aim_limits(camera: str, files) -> dict[str, float]:

@@ -26,36 +26,9 @@ from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.nodes.lockstep import IDLE, Lockstep
 from activeloc_ros.nodes.messages import arm_joints_deg, stamp_ns, time_from_ns, time_from_s
 from activeloc_ros.nodes.ros_params import declare, Param, run
-from activeloc_ros.screen import ScreenConfig, VirtualScreen
-from activeloc_ros.nodes.settings import MAPPING_PARAMS, mapping_from
+from activeloc_ros.nodes.settings import MAPPING_PARAMS, mapping_from, SCREEN_PARAMS, screen_from
+from activeloc_ros.screen import VirtualScreen
 from activeloc_ros.sources import default_bag, open_source, Pacer, pinhole_matrix
-
-# camera parameter -> ScreenConfig field
-SCREEN_FIELDS = {'screen_width_m': 'screen_width_m', 'screen_height_m': 'screen_height_m',
-                 'view_fraction': 'view_fraction', 'distance_m': 'distance_m',
-                 'virtual_width': 'width', 'virtual_height': 'height',
-                 'virtual_hfov_deg': 'hfov_deg'}
-SCREEN_HELP = {
-    'screen_width_m': 'virtual screen width, m (paper: 2.214)',
-    'screen_height_m': 'virtual screen height, m (paper: 1.245)',
-    'view_fraction': "share of the screen's area the virtual camera sees at home (paper: 0.3)",
-    'distance_m': 'virtual camera to screen, m (0: set by view_fraction)',
-    'virtual_width': 'virtual camera image width, pixels',
-    'virtual_height': 'virtual camera image height, pixels',
-    'virtual_hfov_deg': 'virtual camera horizontal field of view, degrees',
-}
-
-
-def _screen_check(field: str):
-    """ScreenConfig's own check of one field, as a pure parameter check."""
-    def check(value):
-        try:
-            ScreenConfig(**{field: value})
-        except (ConfigError, TypeError) as exc:
-            return str(exc)
-        return None
-    return check
-
 
 # Parameters without read_only take effect at once: the next frame uses them.
 PARAMS = [
@@ -92,8 +65,7 @@ PARAMS = [
     Param('lockstep_command_timeout', 2.0, "lockstep: longest wait for the controller's "
           "answer to an action location and for the arm's confirmation, s", positive,
           read_only=True),
-    *(Param(name, getattr(ScreenConfig, field), SCREEN_HELP[name], _screen_check(field),
-            read_only=True) for name, field in SCREEN_FIELDS.items()),
+    *SCREEN_PARAMS,
     *MAPPING_PARAMS,
 ]
 
@@ -108,9 +80,7 @@ class CameraNode(Node):
         self.virtual = p['source'].startswith('virtual:')
         screen = None
         if self.virtual:
-            screen = VirtualScreen(ScreenConfig(**{field: p[name] for name, field
-                                                   in SCREEN_FIELDS.items()}),
-                                   mapping=mapping_from(p))
+            screen = VirtualScreen(screen_from(p), mapping=mapping_from(p))
         if p['lockstep'] and not self.virtual:
             raise ConfigError("parameter 'lockstep' needs a virtual:SCENE source")
         if p['lockstep'] and not self.get_parameter('use_sim_time').value:

@@ -30,14 +30,14 @@ from std_msgs.msg import Float32MultiArray, Header, MultiArrayDimension
 
 from activeloc_ros.checks import in_range, one_of, positive
 from activeloc_ros.errors import FrameError
-from activeloc_ros.nodes.health import PipelineStats
 from activeloc_ros.images import (decode_compressed, float_image_fields, image_to_rgb, overlay,
                                   rgb_to_image_fields)
+from activeloc_ros.nodes.health import PipelineStats
+from activeloc_ros.nodes.qos import offered_reliability
+from activeloc_ros.nodes.ros_params import declare, Param, run
 from activeloc_ros.perception.config import PerceptionConfig
 from activeloc_ros.perception.model import PerceptionResult, SurpriseModel
 from activeloc_ros.perception.pipeline import Pipeline
-from activeloc_ros.nodes.qos import offered_reliability
-from activeloc_ros.nodes.ros_params import declare, Param, run
 
 RELIABILITY = {'best_effort': ReliabilityPolicy.BEST_EFFORT,
                'reliable': ReliabilityPolicy.RELIABLE}
