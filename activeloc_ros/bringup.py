@@ -44,7 +44,7 @@ import yaml
 
 from activeloc_ros.errors import ActivelocError, ConfigError, SourceError
 from activeloc_ros.nodes.messages import stamp_s
-from activeloc_ros.paths import params_files
+from activeloc_ros.paths import packaged_params_files
 from activeloc_ros.screen import AIM_LIMITS
 from activeloc_ros.sources import default_bag
 
@@ -137,7 +137,7 @@ def parse_args(argv):
 def node_arguments(node: str, args) -> list[str]:
     """The --ros-args of one node: its params files, the user's files, then the CLI choices."""
     ros_args = ['--ros-args']
-    for path in [*params_files(node), *args.params]:
+    for path in [*packaged_params_files(node), *args.params]:
         ros_args += ['--params-file', str(path)]
     if args.mode == 'lockstep':
         ros_args += ['-p', 'use_sim_time:=true']
@@ -216,8 +216,7 @@ def preflight(args) -> None:
     if args.mode == 'lockstep' and (kind != 'virtual' or backend != 'sim'):
         raise ConfigError('--mode lockstep steps a simulation: it needs --camera virtual:SCENE '
                           'and --arm sim')
-    files = dict.fromkeys(p for node in NODES for p in params_files(node))
-    for file in [*files, *args.params]:
+    for file in [*packaged_params_files(), *args.params]:
         check_params_file(Path(file))
     check_node_params(args)
     if args.record is not None:
@@ -249,10 +248,10 @@ def node_params(node: str) -> list:
 
 def node_values(node: str, files=()) -> dict:
     """A node's parameter values before it starts: its declared defaults, overlaid with its
-    packaged params files (`paths.params_files`), then the user's params `files`."""
+    packaged params files (`paths.packaged_params_files`), then the user's params `files`."""
     from activeloc_ros.nodes.ros_params import file_values
     values = {p.name: p.default for p in node_params(node)}
-    values.update(file_values(node, [*params_files(node), *files]))
+    values.update(file_values(node, [*packaged_params_files(node), *files]))
     return values
 
 
@@ -274,7 +273,7 @@ def check_node_params(args) -> None:
     problems = []
     for node in NODES:
         params = node_params(node)
-        found = files_problems(node, params, [*params_files(node), *args.params])
+        found = files_problems(node, params, [*packaged_params_files(node), *args.params])
         if not found:
             values = node_values(node, args.params)
             values.update(cli_values(args.ros_args))

@@ -23,11 +23,14 @@ def share_path(relative: str) -> Path:
     return installed if installed.exists() else here
 
 
-def params_files(node: str) -> list[Path]:
-    """The package's params files of a node, in the order they apply: params/robot.yaml
-    (what several nodes share: the home pose, the servos' speed, the aiming joints), then
-    the node's own params/<node>.yaml."""
-    return [share_path('params/robot.yaml'), share_path(f'params/{node}.yaml')]
+def packaged_params_files(node: str | None = None) -> list[Path]:
+    """The package's params files in the order they apply: params/robot.yaml (what several
+    nodes share: the home pose, the servos' speed, the aiming joints), then the node's own
+    params/<node>.yaml; without a node, every node's."""
+    robot = share_path('params/robot.yaml')
+    if node is not None:
+        return [robot, share_path(f'params/{node}.yaml')]
+    return [robot, *sorted(p for p in robot.parent.glob('*.yaml') if p != robot)]
 
 
 def file_sha256(path: Path) -> str:

@@ -205,9 +205,9 @@ def params_file_problems(content, node: str, declared: Mapping[str, Parameter.Ty
 def _shipped_keys() -> frozenset[str]:
     """Every parameter set in the package's own params files: the keys a shared /**
     section may hold for other nodes."""
-    from activeloc_ros.paths import params_files
+    from activeloc_ros.paths import packaged_params_files
     keys = set()
-    for path in dict.fromkeys(p for name in NODE_NAMES for p in params_files(name)):
+    for path in packaged_params_files():
         if path.is_file():
             for body in (load_params_file(path) or {}).values():
                 keys.update(_flatten((body or {}).get('ros__parameters') or {}))
