@@ -8,6 +8,9 @@ import pytest
 # Before any rclpy import: keep DDS traffic on this machine and away from other runs.
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 100))
+# graphs run as processes use another domain: nodes a failed in-process test leaves behind
+# must not join them
+GRAPH_DOMAIN = str(101 + os.getpid() % 100)
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = REPO / 'params'
@@ -20,6 +23,13 @@ def context():
     rclpy.init(context=ctx)
     yield ctx
     rclpy.try_shutdown(context=ctx)
+
+
+@pytest.fixture
+def graph_env():
+    """The environment for a graph run as processes (bringup) in its own domain."""
+    return dict(os.environ, ROS_DOMAIN_ID=GRAPH_DOMAIN, PYTHONPATH=str(REPO),
+                ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
 
 
 def spin_until(executor, condition, timeout):

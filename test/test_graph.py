@@ -87,6 +87,41 @@ def test_graph_in_one_executor(context):
         assert within_limits([math.degrees(q) for q in cmd.position], tol=1e-6)
 
 
+def test_destroying_the_camera_waits_for_a_tick_in_progress(context):
+    """rclpy's executor.shutdown does not wait for the callbacks a multi-threaded executor is
+    running: the camera closes its source after the tick's read, never under it."""
+    from activeloc_ros.nodes.camera_node import CameraNode
+    camera = CameraNode(context=context,
+                        cli_args=params_args('camera', 'wait_for_subscriber:=0.0'))
+    reading, release, errors, frames = threading.Event(), threading.Event(), [], []
+    read = camera.source.read
+
+    def slow_read():
+        reading.set()
+        release.wait(10)
+        frames.append(read())
+        return frames[-1]
+
+    def tick():
+        try:
+            camera.tick()
+        except Exception as exc:      # reported by the assert below
+            errors.append(exc)
+
+    camera.source.read = slow_read
+    ticker = threading.Thread(target=tick)
+    ticker.start()
+    assert reading.wait(10)
+    destroyer = threading.Thread(target=camera.destroy_node)
+    destroyer.start()
+    destroyer.join(0.5)
+    assert destroyer.is_alive(), 'the source was closed under a read'
+    release.set()
+    ticker.join(10)
+    destroyer.join(10)
+    assert not errors and not destroyer.is_alive() and frames[0] is not None
+
+
 def test_unsupported_images_are_skipped_and_logged_once(context):
     from sensor_msgs.msg import Image
     from activeloc_ros.nodes.perception_node import PerceptionNode
@@ -146,13 +181,6 @@ def test_invalid_parameters_name_the_parameter(context, node_name, override, par
 def run_bringup(*args, env, timeout):
     return subprocess.run([sys.executable, '-m', 'activeloc_ros.bringup', *args], env=env,
                           cwd=REPO, capture_output=True, text=True, timeout=timeout)
-
-
-@pytest.fixture
-def graph_env(tmp_path):
-    domain = 101 + os.getpid() % 100        # away from the in-process tests' domain
-    return dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONPATH=str(REPO),
-                ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
 
 
 def test_bringup_processes_echo_and_record(tmp_path, graph_env):

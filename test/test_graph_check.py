@@ -4,6 +4,7 @@ import math
 import pytest
 
 from activeloc_ros.bench import graph_check
+from conftest import GRAPH_DOMAIN
 
 
 def test_compare_reports_the_largest_difference():
@@ -17,8 +18,9 @@ def test_compare_reports_the_largest_difference():
     assert 'times differ' in graph_check.compare(graph, [(0.0, 0, 0), (0.2, 0, 0)], 0.5)[1]
 
 
-def test_bundled_bag_graph_and_benchmark_agree(capsys):
+def test_bundled_bag_graph_and_benchmark_agree(capsys, monkeypatch):
     """bringup (four processes, real DDS, packaged params) against run_episode."""
+    monkeypatch.setenv('ROS_DOMAIN_ID', GRAPH_DOMAIN)
     assert graph_check.main(['--frames', '6']) == 0
     out = capsys.readouterr().out
     assert 'frames: graph 6, bench 6' in out and 'SAME' in out

@@ -10,6 +10,7 @@ With `lockstep` (and `use_sim_time` on every node) the node owns a simulated `/c
 steps the graph frame by frame as `closed_loop` does (`activeloc_ros.nodes.lockstep`).
 """
 import math
+import threading
 import time
 
 from builtin_interfaces.msg import Time
@@ -117,6 +118,10 @@ class CameraNode(Node):
         self.finished = False
         self.failure: str | None = None   # why the stream ended in error (run() exits 1)
         self.started_at = time.monotonic()
+        # a multi-threaded executor may still run a tick while another thread destroys the
+        # node: the lock keeps the source from being closed under a read
+        self._source_lock = threading.Lock()
+        self._closed = False
         self.waiting = not self.source.live and p['wait_for_subscriber'] > 0
         # a steady timer: in lockstep the simulated clock stands still until this node moves it
         self.timer = self.create_timer(0.005, self.tick,
@@ -161,6 +166,11 @@ class CameraNode(Node):
     # -- frames ----------------------------------------------------------------------------
 
     def tick(self) -> None:
+        with self._source_lock:
+            if not self._closed:
+                self._tick()
+
+    def _tick(self) -> None:
         if self.finished or (self.waiting and not self._subscriber_ready()):
             return
         if self.lockstep is not None:
@@ -304,7 +314,9 @@ class CameraNode(Node):
                 f'{kind}: {n}' for kind, n in sorted(self.lockstep.missed.items())))
 
     def destroy_node(self):
-        self.source.close()
+        with self._source_lock:
+            self._closed = True
+            self.source.close()
         return super().destroy_node()
 
 
