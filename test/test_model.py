@@ -129,7 +129,7 @@ def test_the_mirrored_border_keeps_the_grid(pad):
 # -- maps and locations ----------------------------------------------------------------------
 @pytest.mark.parametrize('real', [True, False])
 def test_first_map_is_uniform_then_a_distribution_with_its_argmax(real):
-    model = make(real=real, location='peak')
+    model = make(real=real, location='peak', location_prior=0.0)   # the paper's
     assert model.grid == (14 if real else 8)
     frames = clip(4, h=37, w=53)
     first = model.step(frames[0])
@@ -162,13 +162,23 @@ def test_the_mass_location_is_the_centroid_of_the_cells_near_the_peak():
     assert everything == pytest.approx((3.0, 2.0))            # the map's middle
 
 
+def test_the_location_prior_prefers_the_surprise_nearer_where_the_camera_looks():
+    grid = torch.full((14, 14), 0.001)
+    grid[6, 7] = grid[0, 0] = 0.3              # equally surprising: the middle and a corner
+    assert P.action_location(grid, 'mass', 0.25) == pytest.approx((4.0, 3.5))  # between
+    assert P.action_location(grid, 'mass', 0.25, 5.0) == pytest.approx((7.5, 6.5))
+    assert P.action_location(grid, 'peak', 0.25, 5.0) == (7.5, 6.5)
+    grid[0, 0] = 3.0                            # a far stronger surprise still wins
+    assert P.action_location(grid, 'peak', 0.25, 5.0) == (0.5, 0.5)
+
+
 def test_the_model_reports_the_mass_location_in_frame_pixels():
     model = make(location='mass', location_share=0.0)
     frames = clip(3, h=37, w=53)
     for frame in frames:
         res = model.step(frame)
     m = torch.from_numpy(res.surprise_map)
-    x, y = P.action_location(m, 'mass', 0.0)
+    x, y = P.action_location(m, 'mass', 0.0, model.cfg.location_prior)
     assert res.location_px == pytest.approx((x * 53 / model.grid, y * 37 / model.grid))
 
 

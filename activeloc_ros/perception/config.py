@@ -125,6 +125,12 @@ class PerceptionConfig:
     location_share: float = _param(
         0.25, 'with location mass, the share of the peak value a cell needs to count',
         in_range(0.0, 1.0))
+    location_prior: float = _param(
+        5.0, 'width (cells, a Gaussian\'s sigma) of a prior on the image centre that weights '
+        'the map before the location is read from it: of two equally surprising places the '
+        'one nearer where the camera looks wins, so the camera stays on its action instead '
+        'of jumping to a passer-by or to the view\'s border (0 = off, paper; the published '
+        'map and its peak are not weighted)', at_least(0.0))
     loss_reduction: str = _param(
         'mean', 'L_global over cells and channels: mean or sum', one_of('mean', 'sum'))
     # online learning

@@ -96,15 +96,20 @@ def surprise_map(e: torch.Tensor, temperature: float) -> torch.Tensor:
     return torch.softmax(e / temperature, dim=0)                # (N,)
 
 
-def action_location(grid: torch.Tensor, kind: str, share: float) -> tuple[float, float]:
+def action_location(grid: torch.Tensor, kind: str, share: float,
+                    prior: float = 0.0) -> tuple[float, float]:
     """(x, y) of the action on a (rows, cols) map, in cells (0.5 = the first cell's centre):
     'peak' the argmax cell's centre; 'mass' the map-weighted centroid of the cells that
-    reach `share` of the peak."""
+    reach `share` of the peak. With `prior` > 0 the map is first weighted by a Gaussian of
+    that width (cells) on the grid's centre, where the camera looks."""
     rows, cols = grid.shape
+    ys, xs = torch.meshgrid(torch.arange(rows) + 0.5, torch.arange(cols) + 0.5, indexing='ij')
+    if prior > 0:
+        grid = grid * torch.exp(-((xs - cols / 2) ** 2 + (ys - rows / 2) ** 2)
+                                / (2 * prior ** 2))
     if kind == 'peak':
         row, col = divmod(int(torch.argmax(grid)), cols)
         return col + 0.5, row + 0.5
     weight = torch.where(grid >= share * grid.max(), grid, torch.zeros(()))
-    ys, xs = torch.meshgrid(torch.arange(rows) + 0.5, torch.arange(cols) + 0.5, indexing='ij')
     total = weight.sum()
     return float((weight * xs).sum() / total), float((weight * ys).sum() / total)
