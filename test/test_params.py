@@ -163,3 +163,14 @@ def test_rclpy_enforces_the_descriptor_ranges(context):
         assert node.get_parameter('pan_limit_deg').value == 180.0
     finally:
         node.destroy_node()
+
+
+@pytest.mark.parametrize('node_name', ['camera', 'perception', 'controller', 'arm'])
+def test_every_node_prints_its_help_instead_of_starting(node_name, capsys):
+    import importlib
+    module = importlib.import_module(f'activeloc_ros.nodes.{node_name}_node')
+    assert module.main([f'{node_name}_node', '--help']) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f'usage: ros2 run activeloc_ros {node_name}_node')
+    keys = yaml.safe_load((PARAMS / f'{node_name}.yaml').read_text())['/**']['ros__parameters']
+    assert keys and all(f'\n  {name} ' in out for name in keys)

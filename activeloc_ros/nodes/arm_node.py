@@ -37,7 +37,7 @@ from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.serial_link import BraccioLink
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.nodes.messages import joint_state, stamp_ns, time_from_ns
-from activeloc_ros.nodes.ros_params import declare, Param, run
+from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
 
 
 # Set at run time, a parameter applies at once, except those that fix the hardware or the
@@ -392,7 +392,8 @@ class ArmNode(Node):
 
 
 def main(args=None) -> int:
-    return run(ArmNode, args, on_stop=lambda node: node.stop_on_purpose())
+    return run(ArmNode, args, on_stop=lambda node: node.stop_on_purpose(),
+               help_text=lambda: node_help('arm_node', __doc__, PARAMS))
 
 
 if __name__ == '__main__':

@@ -26,7 +26,7 @@ from activeloc_ros.errors import ConfigError, SourceError
 from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.nodes.lockstep import IDLE, Lockstep
 from activeloc_ros.nodes.messages import arm_joints_deg, stamp_ns, time_from_ns, time_from_s
-from activeloc_ros.nodes.ros_params import declare, Param, run
+from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
 from activeloc_ros.nodes.settings import MAPPING_PARAMS, mapping_from, SCREEN_PARAMS, screen_from
 from activeloc_ros.screen import VirtualScreen
 from activeloc_ros.sources import default_bag, open_source, Pacer, pinhole_matrix
@@ -328,7 +328,8 @@ def stop(node: CameraNode) -> None:
 def main(args=None) -> int:
     # on_stop: a Ctrl-C or kill only ends the spin loop, so no frame is published into a
     # context that rclpy's own signal handler has already shut down
-    return run(CameraNode, args, on_stop=stop)
+    return run(CameraNode, args, on_stop=stop,
+               help_text=lambda: node_help('camera_node', __doc__, PARAMS))
 
 
 if __name__ == '__main__':

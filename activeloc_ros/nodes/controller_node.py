@@ -24,7 +24,7 @@ from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.pd import DERIVATIVE_MODES
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.nodes.messages import arm_joints_deg, joint_state, stamp_s
-from activeloc_ros.nodes.ros_params import declare, Param, run
+from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
 from activeloc_ros.nodes.settings import MAPPING_PARAMS, mapping_from
 
 
@@ -263,7 +263,8 @@ class ControllerNode(Node):
 
 
 def main(args=None) -> int:
-    return run(ControllerNode, args, on_stop=lambda node: node.stop_on_purpose())
+    return run(ControllerNode, args, on_stop=lambda node: node.stop_on_purpose(),
+               help_text=lambda: node_help('controller_node', __doc__, PARAMS))
 
 
 if __name__ == '__main__':

@@ -34,7 +34,7 @@ from activeloc_ros.images import (decode_compressed, float_image_fields, image_t
                                   rgb_to_image_fields)
 from activeloc_ros.nodes.health import PipelineStats
 from activeloc_ros.nodes.qos import offered_reliability
-from activeloc_ros.nodes.ros_params import declare, Param, run
+from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
 from activeloc_ros.perception.config import PerceptionConfig
 from activeloc_ros.perception.model import PerceptionResult, SurpriseModel
 from activeloc_ros.perception.pipeline import Pipeline
@@ -246,7 +246,9 @@ def stop(node: PerceptionNode) -> None:
 def main(args=None) -> int:
     # on_stop: a Ctrl-C or kill only ends the spin loop, so the frame in hand is finished
     # and published before the context ends (rclpy's own handler shut it down under it)
-    return run(PerceptionNode, args, on_stop=stop)
+    return run(PerceptionNode, args, on_stop=stop,
+               help_text=lambda: node_help('perception_node', __doc__,
+                                           model_params() + NODE_PARAMS))
 
 
 if __name__ == '__main__':

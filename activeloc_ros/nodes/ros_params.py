@@ -22,6 +22,7 @@ from pathlib import Path
 import re
 import signal
 import sys
+import textwrap
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from rcl_interfaces.msg import (
@@ -321,8 +322,29 @@ class _StopRequest:
     requested = False
 
 
+def node_help(executable: str, doc: str, params: Sequence[Param]) -> str:
+    """What ``EXECUTABLE --help`` prints: usage, the module's description and every
+    parameter with its default."""
+    lines = [f'usage: ros2 run activeloc_ros {executable} [--ros-args [-p NAME:=VALUE]... '
+             '[--params-file FILE]...]', '', doc.strip(), '',
+             'parameters (default; * read-only: set at start-up):']
+    for spec in params:
+        flag = '*' if spec.read_only else ' '
+        lines.append(f'  {spec.name} {flag} ({spec.default!r})')
+        lines.append(textwrap.fill(spec.description, 96, initial_indent=' ' * 6,
+                                   subsequent_indent=' ' * 6))
+    return '\n'.join(lines)
+
+
+def wants_help(args: Sequence[str]) -> bool:
+    """-h or --help among the arguments before ``--ros-args``."""
+    ours = list(args)[:list(args).index('--ros-args')] if '--ros-args' in args else args
+    return any(a in ('-h', '--help') for a in ours)
+
+
 def run(node_factory: Callable[..., Any], args=None, *,
-        on_stop: Callable[[Any], None] | None = None) -> int:
+        on_stop: Callable[[Any], None] | None = None,
+        help_text: Callable[[], str] | None = None) -> int:
     """Init, spin and shut down one node the Jazzy way; a project error exits 1 with a message.
 
     A node that ends by itself sets ``finished``; one that ends because it cannot go on
@@ -331,9 +353,13 @@ def run(node_factory: Callable[..., Any], args=None, *,
 
     :param on_stop: called with the node after Ctrl-C and before the context ends, so
         the node can act on purpose (the arm holds) while it can still publish.
+    :param help_text: what ``-h`` / ``--help`` prints (`node_help`) instead of starting.
     """
     from rclpy.signals import SignalHandlerOptions
     process_args = sys.argv if args is None else args
+    if help_text is not None and wants_help(process_args):
+        print(help_text())
+        return 0
     for path in params_files(process_args):  # rcl's own parse error names no line
         try:
             load_params_file(path)
