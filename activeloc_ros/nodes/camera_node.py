@@ -109,8 +109,8 @@ class CameraNode(Node):
                 PointStamped, 'action_location', self.on_location, reliable)
             self.command_sub = self.create_subscription(
                 JointState, 'joint_commands', self.on_command, reliable)
-            self.create_subscription(PointStamped, 'action_location/ignored', self.on_ignored,
-                                     reliable)
+            self.ignored_sub = self.create_subscription(
+                PointStamped, 'action_location/ignored', self.on_ignored, reliable)
         self.pacer = Pacer(p['rate'])
         self.pending = None
         self.published = 0
@@ -222,6 +222,7 @@ class CameraNode(Node):
         return (self._image_subscribers()
                 and self.state_sub.get_publisher_count() > 0
                 and self.command_sub.get_publisher_count() > 0
+                and self.ignored_sub.get_publisher_count() > 0
                 and self.location_sub.get_publisher_count() > 0)
 
     def _image_subscribers(self) -> bool:
