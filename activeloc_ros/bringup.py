@@ -44,12 +44,11 @@ import yaml
 
 from activeloc_ros.errors import ActivelocError, ConfigError, SourceError
 from activeloc_ros.nodes.messages import stamp_s
-from activeloc_ros.paths import packaged_params_files
+from activeloc_ros.paths import NODE_NAMES, packaged_params_files
 from activeloc_ros.screen import AIM_LIMITS
 from activeloc_ros.sources import default_bag
 
 MODES = ('realtime', 'lockstep')
-NODES = ('camera', 'perception', 'controller', 'arm')   # start and stop order: the arm last
 # What the nodes publish (README, "The graph"): a recording subscribes to these before any
 # node starts, so it holds every message from the first on.
 GRAPH_TOPICS = {
@@ -271,7 +270,7 @@ def check_node_params(args) -> None:
     checks them at start, so that a bad value stops the run before any node starts."""
     from activeloc_ros.nodes.ros_params import files_problems, validate
     problems = []
-    for node in NODES:
+    for node in NODE_NAMES:
         params = node_params(node)
         found = files_problems(node, params, [*packaged_params_files(node), *args.params])
         if not found:
@@ -459,7 +458,7 @@ class InProcessGraph:
         self.context = context
         self.executor = MultiThreadedExecutor(num_threads=4, context=context)
         self.nodes = {}
-        for name in NODES:
+        for name in NODE_NAMES:
             self.nodes[name] = classes[name](context=context,
                                              cli_args=node_arguments(name, args))
             self.executor.add_node(self.nodes[name])
@@ -580,8 +579,8 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
             graph = InProcessGraph(args, context)
         else:
             env = dict(os.environ, PYTHONUNBUFFERED='1')
-            children = [Child(node, args, log_dir, env) for node in NODES]
-        print(f'bringup: {" -> ".join(NODES)}; camera {args.camera}; arm {args.arm}; '
+            children = [Child(node, args, log_dir, env) for node in NODE_NAMES]
+        print(f'bringup: {" -> ".join(NODE_NAMES)}; camera {args.camera}; arm {args.arm}; '
               f'{args.mode}; logs in {log_dir}', flush=True)
         camera_done_at = None
         while True:

@@ -6,6 +6,9 @@ import sys
 import tempfile
 
 SOURCE_ROOT = Path(__file__).resolve().parents[1]
+# the graph's nodes, each with its params/<node>.yaml, in the order bringup starts and stops
+# them (the arm last)
+NODE_NAMES = ('camera', 'perception', 'controller', 'arm')
 
 
 def share_path(relative: str) -> Path:

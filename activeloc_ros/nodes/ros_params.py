@@ -40,10 +40,8 @@ import yaml
 
 from activeloc_ros.checks import Check, Range
 from activeloc_ros.errors import ActivelocError, ConfigError
+from activeloc_ros.paths import NODE_NAMES   # a params file section names one, or /**
 
-# The package's nodes, by their fixed names (a params file section must name one, or be a
-# wildcard such as /**).
-NODE_NAMES = ('camera', 'perception', 'controller', 'arm')
 _INT64 = (-2**63, 2**63 - 1)
 
 
