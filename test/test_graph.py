@@ -1,6 +1,5 @@
 """The node graph end to end: in one executor, under bringup, recorded, and with bad input."""
 import math
-import os
 from pathlib import Path
 import signal
 import re
