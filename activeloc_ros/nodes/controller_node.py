@@ -29,32 +29,34 @@ from activeloc_ros.nodes.settings import MAPPING_PARAMS, mapping_from
 
 
 # The gains, limits and filters apply at once when set at run time (ros2 param set); the
-# servo speed, the mapping and the report period are read-only.
+# servo speed, the mapping and the report period are read-only. Defaults are the core's.
 PARAMS = (
     Param('pd_variant', '', 'A PD variant of the paper (Table 3) overriding kp/kd: '
           + ', '.join(f'{k}={v}' for k, v in PD_VARIANTS.items()) + '; empty uses kp/kd',
           one_of('', *PD_VARIANTS)),
-    Param('kp', 1.0, 'lambda_p of Eq. 4', non_negative),
-    Param('kd', 0.0, 'lambda_d of Eq. 4, seconds (paper 0.1)', non_negative),
-    Param('derivative', 'target', "'target': d/dt of the action's direction (default: stable "
-          "at 10 frames/s); 'error': d/dt of the camera-frame error, as printed in the paper",
+    Param('kp', PDConfig.kp, 'lambda_p of Eq. 4', non_negative),
+    Param('kd', PDConfig.kd, 'lambda_d of Eq. 4, seconds (paper 0.1)', non_negative),
+    Param('derivative', PDConfig.derivative,
+          "'target': d/dt of the action's direction (default: stable at 10 frames/s); "
+          "'error': d/dt of the camera-frame error, as printed in the paper",
           one_of(*DERIVATIVE_MODES)),
-    Param('derivative_tau', 0.0, 'Low-pass time constant on the derivative, s (0: off)',
-          non_negative),
-    Param('dead_band_deg', 2.0, 'Errors below this (per axis, degrees) are ignored',
-          in_range(0.0, 30.0)),
-    Param('watchdog_timeout', 2.0, 'No action location for this long (s): hold still',
-          positive),
-    Param('min_peak', 0.0102, 'Ignore action locations whose surprise peak (z) is below '
-          'this: no information (a uniform 14x14 map peaks at 1/196 = 0.0051)'),
-    Param('settle_time', 0.3, 'Ignore action locations from frames captured while the camera '
-          'moved or less than this long after it stopped, s (0: never, the paper)',
-          in_range(0.0, 5.0)),
-    Param('pan_limit_deg', 180.0, 'Never aim farther than this left or right of the home '
-          'direction, degrees (the workspace; the joint limits still apply)',
-          in_range(0.0, 180.0)),
-    Param('tilt_limit_deg', 180.0, 'Never aim farther than this up or down, degrees',
-          in_range(0.0, 180.0)),
+    Param('derivative_tau', PDConfig.derivative_tau,
+          'Low-pass time constant on the derivative, s (0: off)', non_negative),
+    Param('dead_band_deg', round(math.degrees(PDConfig.dead_band), 9),
+          'Errors below this (per axis, degrees) are ignored', in_range(0.0, 30.0)),
+    Param('watchdog_timeout', ControllerConfig.watchdog_timeout,
+          'No action location for this long (s): hold still', positive),
+    Param('min_peak', ControllerConfig.min_peak,
+          'Ignore action locations whose surprise peak (z) is below this: no information '
+          '(a uniform 14x14 map peaks at 1/196 = 0.0051)'),
+    Param('settle_time', ControllerConfig.settle_time,
+          'Ignore action locations from frames captured while the camera moved or less than '
+          'this long after it stopped, s (0: never, the paper)', in_range(0.0, 5.0)),
+    Param('pan_limit_deg', ControllerConfig.pan_limit_deg,
+          'Never aim farther than this left or right of the home direction, degrees (the '
+          'workspace; the joint limits still apply)', in_range(0.0, 180.0)),
+    Param('tilt_limit_deg', ControllerConfig.tilt_limit_deg,
+          'Never aim farther than this up or down, degrees', in_range(0.0, 180.0)),
     Param('step_delay_ms', 20, 'Servo step delay, ms per degree (sets the speed limit; must '
           "match the arm's)", in_range(*STEP_DELAY_MS_RANGE), read_only=True),
     *MAPPING_PARAMS,
