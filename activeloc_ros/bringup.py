@@ -239,9 +239,6 @@ def writable_folder(path: Path, option: str) -> None:
 
 def node_params(node: str) -> list:
     """The parameters a node declares."""
-    if node == 'perception':
-        from activeloc_ros.nodes.perception_node import model_params, NODE_PARAMS
-        return model_params() + NODE_PARAMS
     return list(importlib.import_module(f'activeloc_ros.nodes.{node}_node').PARAMS)
 
 

@@ -33,7 +33,7 @@ def packaged_params_files(node: str | None = None) -> list[Path]:
     robot = share_path('params/robot.yaml')
     if node is not None:
         return [robot, share_path(f'params/{node}.yaml')]
-    return [robot, *sorted(p for p in robot.parent.glob('*.yaml') if p != robot)]
+    return [robot, *(share_path(f'params/{name}.yaml') for name in NODE_NAMES)]
 
 
 def file_sha256(path: Path) -> str:

@@ -81,6 +81,10 @@ def model_params() -> list[Param]:
     return params
 
 
+MODEL_PARAMS = model_params()
+PARAMS = MODEL_PARAMS + NODE_PARAMS      # all the node declares
+
+
 def map_message(surprise_map) -> Float32MultiArray:
     rows, cols = surprise_map.shape
     msg = Float32MultiArray()
@@ -93,12 +97,11 @@ def map_message(surprise_map) -> Float32MultiArray:
 class PerceptionNode(Node):
     def __init__(self, **kwargs):
         super().__init__('perception', **kwargs)
-        fields = model_params()
-        values = declare(self, fields + NODE_PARAMS, cli_args=kwargs.get('cli_args'),
+        values = declare(self, PARAMS, cli_args=kwargs.get('cli_args'),
                          use_global_arguments=kwargs.get('use_global_arguments', True),
                          on_change=self.on_parameters)
         self.params = {p.name: values[p.name] for p in NODE_PARAMS}
-        config = {f.name: values[f.name] for f in fields}
+        config = {p.name: values[p.name] for p in MODEL_PARAMS}
         pipelined = self.params['pipeline'] and not config['update_encoder']
         if pipelined and not config['num_threads']:     # one core for each half
             config['num_threads'] = max(1, (os.cpu_count() or 2) // 2)
@@ -247,8 +250,7 @@ def main(args=None) -> int:
     # on_stop: a Ctrl-C or kill only ends the spin loop, so the frame in hand is finished
     # and published before the context ends (rclpy's own handler shut it down under it)
     return run(PerceptionNode, args, on_stop=stop,
-               help_text=lambda: node_help('perception_node', __doc__,
-                                           model_params() + NODE_PARAMS))
+               help_text=lambda: node_help('perception_node', __doc__, PARAMS))
 
 
 if __name__ == '__main__':
