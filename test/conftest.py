@@ -7,10 +7,12 @@ import pytest
 
 # Before any rclpy import: keep DDS traffic on this machine and away from other runs.
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 100))
+# Domains stay within 0-101, the range ROS 2 calls safe on Linux: above it the DDS ports
+# fall among the ephemeral ports other sockets are given.
+os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 50))
 # graphs run as processes use another domain: nodes a failed in-process test leaves behind
 # must not join them
-GRAPH_DOMAIN = str(101 + os.getpid() % 100)
+GRAPH_DOMAIN = str(51 + os.getpid() % 50)
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = REPO / 'params'
