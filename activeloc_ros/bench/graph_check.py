@@ -62,9 +62,11 @@ def graph_poses(scene: str, frames: int, record: Path) -> list[tuple[float, floa
                '--record', str(record), '--log-dir', str(record.parent / 'logs')]
     print('$ ' + ' '.join(command), file=sys.stderr)
     done = subprocess.run(command, check=False)
-    if done.returncode != 0:
-        raise ActivelocError(f'bringup exited {done.returncode} (logs in '
-                             f'{record.parent / "logs"})')
+    if done.returncode != 0:     # the logs go with the temporary folder: show their ends
+        ends = ''.join(f'\n--- {log.name}, last lines:\n'
+                       + '\n'.join(log.read_text(errors='replace').splitlines()[-15:])
+                       for log in sorted((record.parent / 'logs').glob('*.log')))
+        raise ActivelocError(f'bringup exited {done.returncode}{ends}')
     return recorded_poses(record)
 
 
