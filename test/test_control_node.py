@@ -90,6 +90,22 @@ def test_a_location_becomes_a_command_with_its_stamp(graph):
     assert joints[1:] == pytest.approx(HOME_DEG[1:])
 
 
+def test_on_simulated_time_a_location_waits_for_the_arms_state_at_its_stamp(graph):
+    """DDS may deliver a frame's location before the arm's state at the frame's time; the
+    controller then answers only once it knows where the camera was (as closed_loop)."""
+    executor, controller, probe = graph('use_sim_time:=true')
+    home = JointState(name=list(JOINT_NAMES), position=[math.radians(q) for q in HOME_DEG])
+    home.header.stamp = Time(sec=0, nanosec=200_000_000)
+    probe.states.publish(home)
+    assert spin_until(executor, lambda: len(controller.core.history) == 1, 5.0)
+    probe.send_location(CX - FX * math.tan(math.radians(10.0)), CY, 0.3)
+    assert not spin_until(executor, lambda: probe.commands, 0.5), 'answered without the pose'
+    home.header.stamp = Time(sec=0, nanosec=300_000_000)
+    probe.states.publish(home)
+    assert spin_until(executor, lambda: probe.commands, 5.0)
+    assert probe.commands[0].header.stamp.nanosec == 300_000_000
+
+
 def test_nan_and_absurd_locations_are_ignored(graph):
     executor, controller, probe = graph()
     t = probe.now()

@@ -5,8 +5,12 @@ of the source frame), ``camera/camera_info`` and ``joint_states``; publishes
 ``joint_commands`` (JointState, radians, header.stamp copied from the action location so the
 graph can measure frame-to-command latency) and, for each location it does not act on,
 ``action_location/ignored`` (the location as received; the log says why), so that every
-location gets an answer a lockstep camera can wait for. The maths is
+location gets an answer a lockstep simulation can wait for. The maths is
 ``activeloc_ros.control``.
+
+On simulated time (lockstep) a location waits for the arm's state at its stamp, which may
+reach this node after it: the controller then knows the camera's pose at capture, as
+``closed_loop``'s controller does.
 """
 import math
 import threading
@@ -112,6 +116,7 @@ class ControllerNode(Node):
         self._info_key = None
         self._lock = threading.Lock()  # stop_on_purpose may come from another thread
         self.stopped = False
+        self._early: PointStamped | None = None   # simulated time: ahead of the arm's state
 
         # Best effort hears any publisher (a camera driver's sensor QoS); in simulated time
         # (lockstep, our own reliable publishers) every location and arm state counts.
@@ -192,25 +197,41 @@ class ControllerNode(Node):
             return
         t = stamp_s(msg.header.stamp) or self._now()
         self.core.observe_joints(joints, t)
+        if self._early is not None and self._pose_known(self._early) and not self.stopped:
+            early, self._early = self._early, None
+            self._answer(early)
 
     def on_location(self, msg: PointStamped) -> None:
         with self._lock:
             if self.stopped:
                 return
-            now = self._now()
-            t_capture = stamp_s(msg.header.stamp) or now
-            if self.sim_time:
-                # the frame's clock tick may reach this node after its location; in
-                # simulated time a command is never made before its frame (closed_loop)
-                now = max(now, t_capture)
-            command = self.core.on_location(msg.point.x, msg.point.y, t_capture, now,
-                                            peak=msg.point.z)
-            if command is not None:        # its own, or the watchdog's hold
-                self._publish(command.joints_deg, msg.header.stamp)
-            if command is None or command.reason == 'hold':
-                self.ignored_pub.publish(msg)
+            if self.sim_time and not self._pose_known(msg):
+                if self._early is not None:   # its state never came: answer it as it is
+                    self._answer(self._early)
+                self._early = msg
+            else:
+                self._answer(msg)
         self._log_state()
         self._log_ignored()
+
+    def _pose_known(self, msg: PointStamped) -> bool:
+        newest = self.core.history.newest
+        return newest is not None and newest[0] >= stamp_s(msg.header.stamp)
+
+    def _answer(self, msg: PointStamped) -> None:
+        """A command, or the location on action_location/ignored."""
+        now = self._now()
+        t_capture = stamp_s(msg.header.stamp) or now
+        if self.sim_time:
+            # the frame's clock tick may reach this node after its location; in
+            # simulated time a command is never made before its frame (closed_loop)
+            now = max(now, t_capture)
+        command = self.core.on_location(msg.point.x, msg.point.y, t_capture, now,
+                                        peak=msg.point.z)
+        if command is not None:        # its own, or the watchdog's hold
+            self._publish(command.joints_deg, msg.header.stamp)
+        if command is None or command.reason == 'hold':
+            self.ignored_pub.publish(msg)
 
     def on_watchdog(self) -> None:
         with self._lock:
