@@ -6,9 +6,12 @@
     python -m activeloc_ros.bringup --record out/run1    # every topic to an MCAP bag
 
 Each node runs in its own process (as a launch file would) with `params/robot.yaml` and
-its `params/<node>.yaml`, or all in one executor with --in-process. A status line shows
-frames/s, frame-to-command latency (lockstep: the simulated time) and the action location;
-Ctrl-C stops the nodes in order (the arm last, holding still) and a summary closes the run.
+its `params/<node>.yaml`, or all in one executor with --in-process. With a virtual
+camera (--camera virtual:SCENE, the default) the sim node stands in for the camera and
+the arm: it shows the scene on the virtual screen and moves the simulated arm that aims
+the camera. A status line shows frames/s, frame-to-command latency (lockstep: the
+simulated time) and the action location; Ctrl-C stops the nodes in order (the arm last,
+holding still) and a summary closes the run.
 Exits non-zero if a node fails, logs an error, the recording fails or nothing was seen.
 
 Ctrl-C (once or more) and SIGTERM stop the graph the same way and close the bag; the nodes
@@ -22,9 +25,9 @@ Arguments after --ros-args (up to an optional --) go to every node, as `ros2 run
 them: a namespace (-r __ns:=/robot1) lets two robots share a network; remaps, -p and
 --params-file work too. The monitor and the recorder run in the same namespace.
 
---mode lockstep (virtual camera, simulated arm) runs every node on simulated time that the
-camera steps frame by frame, as `closed_loop` does; `camera/pose` then holds, at each
-image's stamp, the pan and tilt the camera rendered with (`lockstep.recorded_poses`).
+--mode lockstep (virtual camera) runs every node on simulated time that the sim node steps
+frame by frame, as `closed_loop` does; `camera/pose` holds, at each image's stamp, the pan
+and tilt the camera rendered with (`lockstep.recorded_poses`).
 """
 import argparse
 import ctypes
@@ -107,10 +110,12 @@ def parse_args(argv):
     parser.add_argument('--mode', choices=MODES, default='realtime',
                         help="'realtime': every node on the wall clock, perception takes the "
                              "newest frame; 'lockstep': simulated time stepped frame by frame "
-                             'by the (virtual) camera, every frame processed, as the screen '
+                             'by the sim node (virtual camera), every frame processed, as '
+                             'the screen '
                              'benchmark does (default: realtime)')
     parser.add_argument('--arm', default='sim',
-                        help="arm back end: 'sim' or 'serial:PORT' (default: sim)")
+                        help="arm back end: 'sim' or 'serial:PORT' (default: sim; a "
+                             "virtual camera's arm is always the sim node's)")
     parser.add_argument('--aim-limits', choices=AIM_LIMITS, default='arm',
                         help="virtual camera: 'arm' (default) lets only the arm's joints "
                              "limit the aim, and past the screen's edge the camera sees the "
@@ -133,6 +138,14 @@ def parse_args(argv):
     return args
 
 
+def graph_nodes(args) -> tuple[str, ...]:
+    """The nodes of the run, in start order: a virtual camera's sim node (camera and arm in
+    one) or the camera and the arm, with perception and the controller."""
+    if args.camera.startswith('virtual:'):
+        return ('sim', 'perception', 'controller')
+    return tuple(name for name in NODE_NAMES if name != 'sim')
+
+
 def node_arguments(node: str, args) -> list[str]:
     """The --ros-args of one node: its params files, the user's files, then the CLI choices."""
     ros_args = ['--ros-args']
@@ -140,12 +153,15 @@ def node_arguments(node: str, args) -> list[str]:
         ros_args += ['--params-file', str(path)]
     if args.mode == 'lockstep':
         ros_args += ['-p', 'use_sim_time:=true']
-    if node == 'camera':
-        ros_args += ['-p', f'source:={args.camera}', '-p', f'rate:={args.rate}',
-                     '-p', f'loop:={str(args.loop).lower()}',
-                     '-p', f'lockstep:={str(args.mode == "lockstep").lower()}']
+    if node in ('camera', 'sim'):
+        ros_args += ['-p', f'rate:={args.rate}', '-p', f'loop:={str(args.loop).lower()}']
         if args.record is not None:         # perception and the recorder
             ros_args += ['-p', 'min_subscribers:=2']
+    if node == 'camera':
+        ros_args += ['-p', f'source:={args.camera}']
+    if node == 'sim':
+        ros_args += ['-p', f'scene:={args.camera.partition(":")[2]}',
+                     '-p', f'lockstep:={str(args.mode == "lockstep").lower()}']
     if node == 'controller':
         limits = (screen_aim_limits(args.camera, args.params) if args.aim_limits == 'screen'
                   else {})
@@ -166,10 +182,10 @@ def own_ros_args(args) -> list[str] | None:
 
 
 def camera_screen(files=()):
-    """The virtual screen a `virtual:` camera renders, from the camera's `node_values`."""
+    """The virtual screen a `virtual:` camera renders, from the sim node's `node_values`."""
     from activeloc_ros.nodes.settings import screen_from
     from activeloc_ros.screen import VirtualScreen
-    return VirtualScreen(screen_from(node_values('camera', files)))
+    return VirtualScreen(screen_from(node_values('sim', files)))
 
 
 def screen_aim_limits(camera: str, files) -> dict[str, float]:
@@ -199,8 +215,9 @@ def preflight(args) -> None:
         from activeloc_ros import bag
         bag.choose_image_topic(bag.bag_facts(Path(target)))
     elif kind in ('video', 'folder', 'virtual'):
-        from activeloc_ros.sources import open_source
-        source = open_source(args.camera, clock=time.time)
+        from activeloc_ros.sources import open_scene, open_source
+        source = (open_scene(target) if kind == 'virtual'
+                  else open_source(args.camera, clock=time.time))
         try:
             if source.read() is None:
                 raise SourceError(f'{args.camera} holds no readable frame')
@@ -212,9 +229,11 @@ def preflight(args) -> None:
     if backend not in ('sim', 'serial') or (backend == 'serial') != bool(port):
         raise ConfigError(f"--arm {args.arm!r}: use 'sim' or 'serial:PORT' (e.g. "
                           "serial:/dev/ttyACM0)")
-    if args.mode == 'lockstep' and (kind != 'virtual' or backend != 'sim'):
-        raise ConfigError('--mode lockstep steps a simulation: it needs --camera virtual:SCENE '
-                          'and --arm sim')
+    if kind == 'virtual' and backend != 'sim':
+        raise ConfigError(f'--camera {args.camera}: the virtual camera rides on the sim '
+                          "node's simulated arm, so --arm must be 'sim'")
+    if args.mode == 'lockstep' and kind != 'virtual':
+        raise ConfigError('--mode lockstep steps a simulation: it needs --camera virtual:SCENE')
     for file in [*packaged_params_files(), *args.params]:
         check_params_file(Path(file))
     check_node_params(args)
@@ -267,7 +286,7 @@ def check_node_params(args) -> None:
     checks them at start, so that a bad value stops the run before any node starts."""
     from activeloc_ros.nodes.ros_params import files_problems, validate
     problems = []
-    for node in NODE_NAMES:
+    for node in graph_nodes(args):
         params = node_params(node)
         found = files_problems(node, params, [*packaged_params_files(node), *args.params])
         if not found:
@@ -446,18 +465,13 @@ class InProcessGraph:
 
     def __init__(self, args, context):
         from rclpy.executors import MultiThreadedExecutor
-        from activeloc_ros.nodes.arm_node import ArmNode
-        from activeloc_ros.nodes.camera_node import CameraNode
-        from activeloc_ros.nodes.controller_node import ControllerNode
-        from activeloc_ros.nodes.perception_node import PerceptionNode
-        classes = {'camera': CameraNode, 'perception': PerceptionNode,
-                   'controller': ControllerNode, 'arm': ArmNode}
         self.context = context
         self.executor = MultiThreadedExecutor(num_threads=4, context=context)
         self.nodes = {}
-        for name in NODE_NAMES:
-            self.nodes[name] = classes[name](context=context,
-                                             cli_args=node_arguments(name, args))
+        for name in graph_nodes(args):
+            module = importlib.import_module(f'activeloc_ros.nodes.{name}_node')
+            node_class = getattr(module, f'{name.capitalize()}Node')
+            self.nodes[name] = node_class(context=context, cli_args=node_arguments(name, args))
             self.executor.add_node(self.nodes[name])
         self.halt = threading.Event()
         self.thread = threading.Thread(target=self._spin, daemon=True)
@@ -472,12 +486,13 @@ class InProcessGraph:
             pass
 
     def camera_finished(self) -> bool:
-        return self.nodes['camera'].finished
+        return next(iter(self.nodes.values())).finished    # the camera or the sim
 
     def stop(self):
         """The controller and the arm stop on purpose while the executor still runs them."""
         for name in ('controller', 'arm'):
-            self.nodes[name].stop_on_purpose()
+            if name in self.nodes:
+                self.nodes[name].stop_on_purpose()
         self.halt.set()
         self.thread.join(timeout=STOP_DEADLINE_S)
         self.executor.shutdown(timeout_sec=STOP_DEADLINE_S)
@@ -576,9 +591,9 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
             graph = InProcessGraph(args, context)
         else:
             env = dict(os.environ, PYTHONUNBUFFERED='1')
-            children = [Child(node, args, log_dir, env) for node in NODE_NAMES]
-        print(f'bringup: {" -> ".join(NODE_NAMES)}; camera {args.camera}; arm {args.arm}; '
-              f'{args.mode}; logs in {log_dir}', flush=True)
+            children = [Child(node, args, log_dir, env) for node in graph_nodes(args)]
+        print(f'bringup: {" -> ".join(graph_nodes(args))}; camera {args.camera}; '
+              f'arm {args.arm}; {args.mode}; logs in {log_dir}', flush=True)
         camera_done_at = None
         while True:
             time.sleep(0.2)
@@ -592,7 +607,7 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
                 break
             for child in children:
                 code = child.returncode
-                if code is not None and (child.name != 'camera' or code != 0) \
+                if code is not None and (child is not children[0] or code != 0) \
                         and child not in failed:
                     failed.append(child)
             if failed:

@@ -10,10 +10,10 @@ as the device does. `open_source(spec)` parses the spec strings the camera node 
     folder:PATH     the images of a folder, sorted by name
     device:N        OpenCV capture device N
     realsense       the colour stream of an Intel RealSense (pyrealsense2)
-    virtual:SCENE   a recorded scene on the virtual projection screen, seen by the camera
-                    the arm aims (`screen.VirtualScreen`); SCENE is bag:PATH, video:PATH,
-                    folder:PATH, an annotated sequence folder (with meta.json) or the name
-                    of a sequence in the data root (`data.resolve_data_root`)
+
+`open_scene(scene)` opens what the simulated world's virtual screen shows (the sim node):
+bag:PATH, video:PATH, folder:PATH, an annotated sequence folder (with meta.json) or the
+name of a sequence in the data root (`data.resolve_data_root`).
 """
 from collections import Counter
 from dataclasses import dataclass
@@ -28,15 +28,13 @@ from activeloc_ros import bag, data
 from activeloc_ros.errors import DataError, FrameError, SourceError
 from activeloc_ros.images import decode_compressed, image_to_rgb
 from activeloc_ros.paths import share_path
-from activeloc_ros.screen import VirtualScreen
 from activeloc_ros.world import frame_time
 
 IMAGE_SUFFIXES = ('.jpg', '.jpeg', '.png', '.bmp', '.ppm', '.pgm', '.tif', '.tiff', '.webp')
 DEFAULT_SCENE_FPS = 10.0     # a scene that knows no rate of its own (a bag of one frame)
 SCENE_KINDS = ('bag', 'video', 'folder')
-SCENE_HELP = ('virtual:bag:PATH, virtual:video:PATH, virtual:folder:PATH, '
-              'virtual:SEQUENCE_DIR (with meta.json) or virtual:NAME (a sequence in the '
-              'data root)')
+SCENE_HELP = ('bag:PATH, video:PATH, folder:PATH, SEQUENCE_DIR (with meta.json) or NAME (a '
+              'sequence in the data root)')
 
 
 @dataclass
@@ -280,68 +278,12 @@ class SequenceSource(Source):
             self._samples.close()
 
 
-class VirtualSource(Source):
-    """A recorded scene on the virtual projection screen, as the camera the arm aims sees it.
-
-    Scene frame i is shown at ``i / fps`` (the scene's rate), like ``closed_loop``. Each
-    frame is rendered (``VirtualScreen.render``) with the newest arm pose given to
-    ``set_joints``; before any, the home pose. ``read_scene`` and ``render`` split ``read``
-    so that a caller can render a frame when it is shown rather than when it is read.
-    """
-
-    def __init__(self, scene: Source, screen: VirtualScreen):
-        super().__init__()
-        self.scene = scene
-        self.screen = screen
-        self.skipped = scene.skipped
-        self.fps = scene.fps if scene.fps else DEFAULT_SCENE_FPS
-        self._index = 0
-        self.set_joints(screen.mapping.home_deg)
-
-    def set_joints(self, joints_deg) -> None:
-        """Aim the camera: the arm's six joint angles, degrees."""
-        joints = tuple(float(q) for q in joints_deg)
-        if len(joints) != len(self.screen.mapping.home_deg) or not all(
-                math.isfinite(q) for q in joints):
-            raise SourceError(f'virtual camera: a pose needs six finite joint angles, '
-                              f'got {joints_deg!r}')
-        self.joints_deg = joints
-        self.pan, self.tilt = self.screen.pan_tilt(joints)
-
-    def read_scene(self) -> Frame | None:
-        """The next scene frame (not rendered), stamped with its time on the screen."""
-        frame = self.scene.read()
-        if frame is None:
-            return None
-        self._index += 1
-        return Frame(frame.rgb, frame_time(self._index - 1, self.fps), self._index - 1)
-
-    def render(self, scene: Frame) -> Frame:
-        """What the camera sees of a scene frame from the current pose."""
-        return Frame(self.screen.render(scene.rgb, self.pan, self.tilt), scene.stamp,
-                     scene.index)
-
-    def read(self) -> Frame | None:
-        scene = self.read_scene()
-        return None if scene is None else self.render(scene)
-
-    def rewind(self) -> None:
-        self.scene.rewind()
-        self._index = 0
-
-    def camera_matrix(self) -> np.ndarray:
-        return self.screen.K.copy()
-
-    def close(self) -> None:
-        self.scene.close()
-
-
 def open_scene(scene: str, *, image_topic: str = '', folder_fps: float = 10.0) -> Source:
     """The recorded source a virtual screen shows: a source spec, a sequence folder or the
     name of a sequence in the data root."""
     kind, _, arg = scene.partition(':')
     if not scene:
-        raise SourceError(f'virtual camera needs a scene: {SCENE_HELP}')
+        raise SourceError(f'the virtual screen needs a scene: {SCENE_HELP}')
     if kind in SCENE_KINDS:
         return open_source(scene, clock=None, image_topic=image_topic, folder_fps=folder_fps)
     if kind in ('virtual', 'device', 'realsense'):
@@ -352,7 +294,7 @@ def open_scene(scene: str, *, image_topic: str = '', folder_fps: float = 10.0) -
         return SequenceSource(path)
     if path.is_dir():
         raise SourceError(f'{path} is not an annotated sequence (no {data.META_FILE}); a '
-                          f'folder of images is virtual:folder:{path}')
+                          f'folder of images is folder:{path}')
     if path.exists():
         raise SourceError(f'{path} is a file, not a scene: {SCENE_HELP}')
     if len(path.parts) != 1:
@@ -374,13 +316,9 @@ def default_bag() -> Path:
 
 
 def open_source(spec: str, *, clock, image_topic: str = '', folder_fps: float = 10.0,
-                realsense_size: tuple[int, int] = (640, 480), realsense_fps: int = 30,
-                screen: VirtualScreen | None = None) -> Source:
-    """Open the source a spec string names; raises SourceError with the reason if it cannot.
-
-    :param screen: the screen and arm mapping of ``virtual:`` sources (default: the
-        paper's screen and the default mapping).
-    """
+                realsense_size: tuple[int, int] = (640, 480), realsense_fps: int = 30
+                ) -> Source:
+    """Open the source a spec string names; raises SourceError with the reason if it cannot."""
     kind, _, arg = spec.partition(':')
     if kind == 'bag' and arg:
         return BagSource(Path(arg), topic=image_topic)
@@ -388,9 +326,6 @@ def open_source(spec: str, *, clock, image_topic: str = '', folder_fps: float = 
         return VideoSource(Path(arg))
     if kind == 'folder' and arg:
         return FolderSource(Path(arg), fps=folder_fps)
-    if kind == 'virtual':
-        scene = open_scene(arg, image_topic=image_topic, folder_fps=folder_fps)
-        return VirtualSource(scene, screen if screen is not None else VirtualScreen())
     if kind == 'device':
         try:
             return DeviceSource(int(arg or 0), clock=clock)
@@ -400,7 +335,8 @@ def open_source(spec: str, *, clock, image_topic: str = '', folder_fps: float = 
         return RealSenseSource(width=realsense_size[0], height=realsense_size[1],
                                fps=realsense_fps, clock=clock)
     raise SourceError(f'unknown camera source {spec!r}: use bag:PATH, video:PATH, '
-                      'folder:PATH, device:N, realsense or virtual:SCENE')
+                      'folder:PATH, device:N or realsense (a scene on the virtual screen is '
+                      "the sim node's)")
 
 
 class Pacer:

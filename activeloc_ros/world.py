@@ -79,9 +79,15 @@ class ScreenWorld:
     def times(self) -> Iterator[float]:
         """Shows each scene frame in turn; yields the time it is shown at."""
         for index, scene, truth in self.frames:
-            self.index, self.scene, self.truth = index, scene, truth
-            self.t = frame_time(index, self.fps)
-            yield self.t
+            yield self.show(index, scene, truth)
+
+    def show(self, index: int, scene: np.ndarray, truth: FrameTruth,
+             t: float | None = None) -> float:
+        """Put scene frame ``index`` on the screen at ``t`` (default: its own time, i / fps;
+        a world on a wall clock gives the time it is shown at); returns ``t``."""
+        self.index, self.scene, self.truth = index, scene, truth
+        self.t = frame_time(index, self.fps) if t is None else t
+        return self.t
 
     @property
     def scene_wh(self) -> tuple[int, int]:

@@ -199,7 +199,7 @@ def test_bringup_processes_echo_and_record(tmp_path, graph_env):
     assert '14x14 map' in echo.stdout
     assert bringup.returncode == 0, out
     assert 'summary: stopped after' in out and 'source ended' in out
-    assert 'node exit codes: camera 0, perception 0, controller 0, arm 0' in out
+    assert 'node exit codes: sim 0, perception 0, controller 0' in out
 
     from rosbags.highlevel import AnyReader
     with AnyReader([record]) as reader:
@@ -253,8 +253,9 @@ def test_bringup_refuses_bad_input_before_any_node(tmp_path, graph_env, case, me
 
 
 @pytest.mark.parametrize('options,files,message', [
-    ([], {'camera': 'view_fraction: 5.0'}, "camera: parameter 'view_fraction'"),
-    ([], {'camera': 'screen_width_m: "wide"'}, "'screen_width_m' must be a double"),
+    ([], {'sim': 'view_fraction: 5.0'}, "sim: parameter 'view_fraction'"),
+    ([], {'sim': 'screen_width_m: "wide"'}, "'screen_width_m' must be a double"),
+    (['--camera', f'bag:{SAMPLE}'], {'camera': 'rate: 0.0'}, "camera: parameter 'rate'"),
     ([], {'controller': 'kp: "fast"'}, "'kp' must be a double"),
     ([], {'controller': 'kpp: 1.0'}, "did you mean 'kp'?"),
     ([], {'arm_node': 'state_rate: 10.0'}, 'names no node of activeloc_ros'),
@@ -331,7 +332,7 @@ def test_bringup_stopped_by_a_signal_leaves_no_node_and_a_readable_bag(tmp_path,
                 float(m.group(1)) > 0 for m in map(MAPS_SEEN.search, list(lines)) if m):
             time.sleep(0.2)
         nodes = node_pids(bringup.pid)
-        assert len(nodes) == 4
+        assert len(nodes) == 3        # the sim, perception, the controller
         if how == 'SIGINT twice':
             bringup.send_signal(signal.SIGINT)
             time.sleep(0.5)       # the second one lands while the nodes are being stopped
@@ -385,7 +386,8 @@ def test_a_node_that_cannot_go_on_ends_the_run_with_its_reason_on_the_console(
         params = tmp_path / 'arm.yaml'
         params.write_text('arm:\n  ros__parameters:\n    give_up_timeout: 1.0\n')
         missing = tmp_path / 'ttyACM9'
-        options = ['--arm', f'serial:{missing}', '--params', str(params)]
+        options = ['--camera', f'bag:{SAMPLE}', '--arm', f'serial:{missing}',
+                   '--params', str(params)]
         reason = f'serial link to the arm on {missing} never connected'
     result = run_bringup(*options, '--log-dir', str(tmp_path / 'logs'), env=graph_env,
                          timeout=180)

@@ -4,19 +4,17 @@ import math
 import pytest
 import yaml
 
+from activeloc_ros.paths import NODE_NAMES
 from conftest import PARAMS, params_args
 
 
 def node_class(name):
-    from activeloc_ros.nodes.arm_node import ArmNode
-    from activeloc_ros.nodes.camera_node import CameraNode
-    from activeloc_ros.nodes.controller_node import ControllerNode
-    from activeloc_ros.nodes.perception_node import PerceptionNode
-    return {'camera': CameraNode, 'perception': PerceptionNode,
-            'controller': ControllerNode, 'arm': ArmNode}[name]
+    import importlib
+    module = importlib.import_module(f'activeloc_ros.nodes.{name}_node')
+    return getattr(module, f'{name.capitalize()}Node')
 
 
-@pytest.mark.parametrize('name', ['camera', 'perception', 'controller', 'arm'])
+@pytest.mark.parametrize('name', NODE_NAMES)
 def test_params_file_matches_declared_parameters(context, name):
     content = yaml.safe_load((PARAMS / f'{name}.yaml').read_text())
     keys = set(content['/**']['ros__parameters'])
@@ -37,7 +35,7 @@ def test_robot_yaml_is_declared_by_the_nodes_that_share_it(context):
     content = yaml.safe_load((PARAMS / 'robot.yaml').read_text())
     values = content['/**']['ros__parameters']
     sharing = {key: [] for key in values}
-    for name in ('camera', 'perception', 'controller', 'arm'):
+    for name in NODE_NAMES:
         node = node_class(name)(context=context, cli_args=params_args(name))
         try:
             for key, value in values.items():
@@ -165,7 +163,7 @@ def test_rclpy_enforces_the_descriptor_ranges(context):
         node.destroy_node()
 
 
-@pytest.mark.parametrize('node_name', ['camera', 'perception', 'controller', 'arm'])
+@pytest.mark.parametrize('node_name', NODE_NAMES)
 def test_every_node_prints_its_help_instead_of_starting(node_name, capsys):
     import importlib
     module = importlib.import_module(f'activeloc_ros.nodes.{node_name}_node')

@@ -1,4 +1,5 @@
-"""The virtual camera (virtual:SCENE sources) and lockstep: core, nodes and the graph."""
+"""The virtual camera (the sim node: a scene on the virtual screen, the arm that aims the
+camera) and lockstep: core, nodes and the graph."""
 import json
 import math
 from pathlib import Path
@@ -11,11 +12,13 @@ import pytest
 
 from activeloc_ros.control import JOINT_NAMES, SimArm
 from activeloc_ros.control.braccio import ArmMapping, HOME_DEG
+from activeloc_ros.data import FrameTruth
 from activeloc_ros.errors import ConfigError, SourceError
 from activeloc_ros.nodes.lockstep import (
-    LATE_COMMAND, Lockstep, NO_COMMAND, NO_LOCATION, NO_POSE, NOT_APPLIED, time_ns)
+    LATE_COMMAND, Lockstep, NO_COMMAND, NO_LOCATION, NO_POSE, time_ns)
 from activeloc_ros.screen import VirtualScreen
-from activeloc_ros.sources import default_bag, open_source, SequenceSource, VirtualSource
+from activeloc_ros.sources import default_bag, open_scene, open_source, SequenceSource
+from activeloc_ros.world import ScreenWorld
 from conftest import params_args, REPO, spin_until
 
 SCENE_WH = (320, 180)
@@ -55,53 +58,42 @@ def pose(pan_deg: float = 0.0, tilt_deg: float = 0.0) -> list[float]:
     return list(ArmMapping().joints_deg(math.radians(pan_deg), math.radians(tilt_deg)))
 
 
-# -- the source --------------------------------------------------------------------------
+# -- the world and its scenes ------------------------------------------------------------
 
 
-def test_virtual_source_renders_the_screen_and_follows_the_arm(tmp_path):
+def test_the_world_renders_the_screen_and_follows_the_arm():
     screen = VirtualScreen()
-    source = open_source(f'virtual:folder:{write_folder(tmp_path / "scene")}', clock=None,
-                         folder_fps=5.0, screen=screen)
-    assert isinstance(source, VirtualSource)
-    assert source.fps == 5.0
-    np.testing.assert_array_equal(source.camera_matrix(), screen.K)
-    home = source.read()
-    assert (home.index, home.stamp) == (0, 0.0)
-    assert home.rgb.shape == (480, 640, 3)
-    np.testing.assert_array_equal(home.rgb, screen.render(scene_image(160, 90), 0.0, 0.0))
+    world = ScreenWorld((), fps=5.0, screen=screen, home_deg=HOME_DEG, step_delay_ms=20)
+    scene = scene_image(160, 90)
+    assert world.show(0, scene, FrameTruth(0, None, ())) == 0.0
+    world.advance(world.t)
+    home = world.observe()
+    assert (home.index, home.t) == (0, 0.0) and home.rgb.shape == (480, 640, 3)
+    np.testing.assert_array_equal(home.rgb, screen.render(scene, 0.0, 0.0))
     x0, y0 = bright_centroid(home.rgb)
     assert (x0, y0) == pytest.approx((319.5, 239.5), abs=1.0)   # screen centre at home
 
-    source.set_joints(pose(pan_deg=10.0))           # pan > 0 turns the camera left ...
-    left = source.read()
-    assert (left.index, left.stamp) == (1, 0.2)
+    world.act(pose(pan_deg=10.0), 0.0)              # pan > 0 turns the camera left ...
+    assert world.show(1, scene, FrameTruth(1, None, ())) == 0.2
+    world.advance(world.t)                          # 10 degrees at 50 deg/s
+    left = world.observe()
     x1, y1 = bright_centroid(left.rgb)
     assert x1 > x0 + 50 and y1 == pytest.approx(y0, abs=2.0)   # ... so the scene moves right
-    assert (source.pan, source.tilt) == pytest.approx((math.radians(10.0), 0.0))
+    assert (left.pan, left.tilt) == pytest.approx((math.radians(10.0), 0.0))
 
-    source.set_joints(pose(tilt_deg=8.0))           # tilt > 0 raises it: the scene goes down
-    x2, y2 = bright_centroid(source.read().rgb)
+    world.act(pose(tilt_deg=8.0), 0.2)              # tilt > 0 raises it: the scene goes down
+    world.show(2, scene, FrameTruth(2, None, ()), t=0.5)    # a wall clock's time
+    world.advance(world.t)
+    x2, y2 = bright_centroid(world.observe().rgb)
     assert y2 > y0 + 40 and x2 == pytest.approx(x0, abs=2.0)
-    assert source.read() is None
-    source.rewind()
-    assert source.read().index == 0
-
-
-def test_virtual_source_refuses_a_bad_pose(tmp_path):
-    source = open_source(f'virtual:folder:{write_folder(tmp_path / "scene", 1)}', clock=None)
-    with pytest.raises(SourceError, match='six finite joint angles'):
-        source.set_joints([90.0, math.nan, 45, 45, 90, 73])
-    with pytest.raises(SourceError, match='six finite joint angles'):
-        source.set_joints([90.0] * 5)
-    assert source.joints_deg == tuple(float(q) for q in HOME_DEG)
 
 
 def test_sequence_scenes_by_folder_and_by_name(tmp_path, monkeypatch):
     folder = write_sequence(tmp_path, fps='25 (header)')
-    by_path = open_source(f'virtual:{folder}', clock=None)
-    assert isinstance(by_path.scene, SequenceSource) and by_path.fps == 25.0
+    by_path = open_scene(str(folder))
+    assert isinstance(by_path, SequenceSource) and by_path.fps == 25.0
     monkeypatch.setenv('ACTIVELOC_DATA', str(tmp_path))
-    by_name = open_source('virtual:tiny', clock=None)
+    by_name = open_scene('tiny')
     frames = [by_name.read() for _ in range(4)]
     assert [f.index for f in frames[:3]] == [0, 1, 2] and frames[3] is None
     assert frames[2].stamp == pytest.approx(2 / 25.0)
@@ -109,8 +101,8 @@ def test_sequence_scenes_by_folder_and_by_name(tmp_path, monkeypatch):
 
 
 def test_the_bundled_bag_as_a_scene():
-    source = open_source(f'virtual:bag:{default_bag()}', clock=None)
-    assert source.fps == 10.0                  # 300 frames over 29.9 s
+    source = open_scene(f'bag:{default_bag()}')
+    assert source.fps == pytest.approx(10.0, abs=0.1)    # 300 frames over 29.9 s
     assert source.read().rgb.shape == (480, 640, 3)
     source.close()
 
@@ -132,58 +124,49 @@ def test_bad_scenes_say_why(tmp_path, monkeypatch, scene, message):
     (write_sequence(tmp_path, 'broken') / 'gt_xywh.txt').write_text('1,2,3\n')
     monkeypatch.setenv('ACTIVELOC_DATA', str(tmp_path))
     with pytest.raises(SourceError, match=message):
-        open_source('virtual:' + scene.format(tmp=tmp_path), clock=None)
+        open_scene(scene.format(tmp=tmp_path))
 
 
 def test_a_name_without_a_data_root(tmp_path, monkeypatch):
     monkeypatch.setenv('ACTIVELOC_DATA', str(tmp_path / 'absent'))
     with pytest.raises(SourceError, match='cannot look up the sequence'):
-        open_source('virtual:otb_crossing', clock=None)
+        open_scene('otb_crossing')
+
+
+def test_the_camera_node_is_no_virtual_camera():
+    with pytest.raises(SourceError, match="the sim node's"):
+        open_source(f'virtual:bag:{default_bag()}', clock=None)
 
 
 # -- the lockstep state machine ----------------------------------------------------------
 
 
 def test_lockstep_steps_one_frame_after_every_answer():
-    step = Lockstep(10.0, timeout=5.0, command_timeout=1.0, retick=0.5)
+    step = Lockstep(timeout=5.0, command_timeout=1.0)
     assert [time_ns(i, 10.0) for i in range(3)] == [0, 100_000_000, 200_000_000]
     assert [time_ns(i, 30.0) for i in (1, 3)] == [33_333_333, 100_000_000]
-    assert step.begin(0.0) == 0
-    step.on_state(0, HOME_DEG)
-    assert step.poll(0.01) == 'render' and step.pose == HOME_DEG
-    step.rendered(0.01)
-    assert step.poll(0.02) == 'wait'                  # perception has not answered
-    step.on_location(0, 0.1)
-    step.on_command(0)
-    assert step.poll(0.11) == 'wait'                  # the arm has not confirmed it
-    step.on_state(0, HOME_DEG)
-    assert step.poll(0.12) == 'next'
-    assert step.begin(0.2) == 100_000_000
+    assert step.poll(0.0) == 'next'                   # nothing in progress: begin
+    step.begin(0, 0.0)
     with pytest.raises(ConfigError, match='not finished'):
-        step.begin(0.2)
-    step.on_state(0, HOME_DEG)                        # an old stamp is not the frame's pose
+        step.begin(0, 0.0)
+    assert step.poll(0.01) == 'wait'                  # the arm state is not back yet
+    step.on_state(0)
+    assert step.poll(0.02) == 'render'
+    step.rendered(0.02)
+    step.on_command(0)                                # no location yet, but an answer
+    assert step.poll(0.03) == 'next'
+    step.begin(100_000_000, 0.2)
+    step.on_state(0)                                  # an old stamp is not the frame's
     assert step.poll(0.3) == 'wait'
-    assert step.poll(0.71) == 'tick' and step.ticks == 2
-    step.on_state(100_000_000, (91.0, 90, 45, 45, 90, 73))
-    step.on_state(100_000_000, (91.0, 90, 45, 45, 90, 73))   # the answer to the second tick
-    assert step.poll(0.8) == 'render' and step.pose[0] == 91.0
-    step.rendered(0.8)
-    step.on_command(100_000_000)
-    step.on_command(0)                                # a late command counts as well
-    step.on_state(100_000_000, (91.0, 90, 45, 45, 90, 73))
-    assert step.poll(0.9) == 'wait'
-    step.on_state(100_000_000, (91.0, 90, 45, 45, 90, 73))
-    assert step.poll(0.91) == 'next'
-    assert dict(step.missed) == {LATE_COMMAND: 1}
-    step.begin(1.0)                                   # the controller ignores the location:
-    step.on_state(200_000_000, HOME_DEG)              # no command to wait for
-    assert step.poll(1.0) == 'render'
-    step.rendered(1.0)
-    step.on_location(200_000_000, 1.1)
-    step.on_ignored(100_000_000)                      # not this frame's
-    assert step.poll(1.2) == 'wait'
-    step.on_ignored(200_000_000)
-    assert step.poll(1.21) == 'next'
+    step.on_state(100_000_000)
+    assert step.poll(0.31) == 'render'
+    step.rendered(0.31)
+    step.on_location(100_000_000, 0.4)
+    step.on_command(0)                                # a late command is counted
+    step.on_ignored(0)                                # and an old answer is not this one
+    assert step.poll(0.5) == 'wait'
+    step.on_ignored(100_000_000)                      # the controller ignored it
+    assert step.poll(0.51) == 'next'
     assert dict(step.missed) == {LATE_COMMAND: 1}
 
 
@@ -191,18 +174,20 @@ def test_lockstep_steps_one_frame_after_every_answer():
     ([], [NO_POSE, NO_LOCATION]),
     (['state'], [NO_LOCATION]),
     (['state', 'location'], [NO_COMMAND]),
-    (['state', 'location', 'command'], [NOT_APPLIED]),
+    (['state', 'location', 'command'], []),
 ])
 def test_lockstep_never_hangs(events, missed):
-    step = Lockstep(10.0, timeout=5.0, command_timeout=1.0, retick=100.0)
-    step.begin(0.0)
+    step = Lockstep(timeout=5.0, command_timeout=1.0)
+    step.begin(0, 0.0)
     if 'state' in events:
-        step.on_state(0, HOME_DEG)
+        step.on_state(0)
     now, actions = 0.0, []
-    while step.phase != 'idle' and now < 30.0:
+    while now < 30.0:
         now += 0.25
         action = step.poll(now)
         actions.append(action)
+        if action == 'next':
+            break
         if action == 'render':
             step.rendered(now)
             if 'location' in events:
@@ -213,8 +198,8 @@ def test_lockstep_never_hangs(events, missed):
     assert sorted(step.missed) == sorted(missed)
 
 
-@pytest.mark.parametrize('kwargs', [dict(fps=0.0), dict(fps=10.0, timeout=math.inf),
-                                    dict(fps=10.0, command_timeout=-1.0)])
+@pytest.mark.parametrize('kwargs', [dict(timeout=math.inf), dict(command_timeout=-1.0),
+                                    dict(timeout=0.0)])
 def test_lockstep_settings_are_checked(kwargs):
     with pytest.raises(ConfigError, match='lockstep'):
         Lockstep(**kwargs)
@@ -226,110 +211,109 @@ def test_lockstep_settings_are_checked(kwargs):
 SIM = 'use_sim_time:=true'
 
 
-@pytest.mark.parametrize('node_name,extra,message', [
-    ('camera', ['lockstep:=true', SIM], "'lockstep' needs a virtual"),
-    ('camera', ['source:=virtual:bag:' + str(default_bag()), 'lockstep:=true'],
-     'use_sim_time'),
-    ('camera', ['source:=virtual:bag:' + str(default_bag()), 'view_fraction:=2.0'],
-     'view_fraction'),
-    ('camera', ['source:=virtual:nosuch/scene'], 'scene not found'),
-    ('arm', ['backend:=serial', SIM], 'use_sim_time must be false'),
+@pytest.mark.parametrize('extra,message', [
+    (['lockstep:=true'], 'use_sim_time'),
+    ([SIM], 'set lockstep:=true'),
+    (['view_fraction:=2.0'], 'view_fraction'),
+    (['scene:=nosuch/scene'], 'scene not found'),
 ])
-def test_bad_virtual_and_lockstep_settings(context, node_name, extra, message):
-    from activeloc_ros.nodes.arm_node import ArmNode
-    from activeloc_ros.nodes.camera_node import CameraNode
-    cls = {'camera': CameraNode, 'arm': ArmNode}[node_name]
+def test_bad_sim_settings(context, extra, message):
+    from activeloc_ros.nodes.sim_node import SimNode
     with pytest.raises((ConfigError, SourceError), match=message):
-        cls(context=context, cli_args=params_args(node_name, *extra))
+        SimNode(context=context, cli_args=params_args('sim', *extra))
 
 
 class Probe:
-    """Records the camera's poses, images' stamps and the controller's commands."""
+    """Records the camera's poses, images' stamps, the arm's states and the controller's
+    answers; sends joint commands."""
 
     def __init__(self, context):
+        from geometry_msgs.msg import PointStamped
         from rclpy.node import Node
         from rclpy.qos import QoSProfile
         from sensor_msgs.msg import CameraInfo, JointState
         self.node = Node('probe', context=context)
-        from geometry_msgs.msg import PointStamped
         self.poses, self.infos, self.commands, self.ignored = [], [], [], []
+        self.states = []
         deep = QoSProfile(depth=100)
         sub = self.node.create_subscription
         sub(JointState, 'camera/pose', self.poses.append, deep)
         sub(CameraInfo, 'camera/camera_info', self.infos.append, deep)
         sub(JointState, 'joint_commands', self.commands.append, deep)
+        sub(JointState, 'joint_states', self.states.append, deep)
         sub(PointStamped, 'action_location/ignored', self.ignored.append, deep)
-        self.joints = self.node.create_publisher(JointState, 'joint_states', 10)
+        self.command = self.node.create_publisher(JointState, 'joint_commands', 10)
 
 
 def stamp_ns(msg) -> int:
     return msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
 
 
-def test_realtime_virtual_camera_follows_joint_states(context):
+def test_realtime_sim_moves_its_arm_and_the_camera_with_it(context):
     from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
-    from activeloc_ros.nodes.camera_node import CameraNode
-    camera = CameraNode(context=context, cli_args=params_args(
-        'camera', f'source:=virtual:bag:{default_bag()}', 'rate:=5.0', 'loop:=true',
-        'wait_for_subscriber:=0.0'))
+    from activeloc_ros.nodes.sim_node import SimNode
+    sim = SimNode(context=context, cli_args=params_args(
+        'sim', 'rate:=5.0', 'loop:=true', 'wait_for_subscriber:=0.0'))
     probe = Probe(context)
     executor = SingleThreadedExecutor(context=context)
-    for node in (camera, probe.node):
+    for node in (sim, probe.node):
         executor.add_node(node)
     turned = JointState(name=list(JOINT_NAMES),
                         position=[math.radians(q) for q in pose(pan_deg=12.0)])
+    bad = JointState(name=list(JOINT_NAMES), position=[math.nan] * 6)
     try:
-        assert spin_until(executor, lambda: probe.poses, 20), 'no camera/pose'
+        assert spin_until(executor, lambda: probe.poses and probe.states, 20)
         assert tuple(probe.poses[0].name) == ('pan', 'tilt')
         assert list(probe.poses[0].position) == [0.0, 0.0]
-        assert spin_until(executor, lambda: camera.state_sub.get_publisher_count() > 0, 10)
+        assert spin_until(executor, lambda: sim.command_sub.get_publisher_count() > 0, 10)
+        probe.command.publish(bad)
+        assert spin_until(executor, lambda: sim.rejected == 1, 10), 'a NaN command was taken'
 
         def turned_seen():
-            probe.joints.publish(turned)
+            probe.command.publish(turned)
             return probe.poses[-1].position[0] == pytest.approx(math.radians(12.0))
         assert spin_until(executor, turned_seen, 20), 'the camera did not turn'
     finally:
         executor.shutdown()
-        camera.destroy_node()
+        sim.destroy_node()
         probe.node.destroy_node()
     assert list(probe.infos[-1].k) == pytest.approx(VirtualScreen().K.ravel())
+    base = [math.degrees(s.position[0]) for s in probe.states]
+    assert base[-1] == pytest.approx(90.0 + 12.0) and base == sorted(base)
 
 
 def test_lockstep_graph_steps_frame_by_frame_like_closed_loop(context):
-    """Camera (lockstep), the real perception, controller and simulated arm on simulated
-    time: every frame is processed and answered (a command or an ignored location), each
-    image's stamp is i / fps, and the pose each frame was rendered with is where the
-    simulated arm is when every command is applied at its frame's time (closed_loop's
-    lockstep)."""
+    """The sim (lockstep), the real perception and controller on simulated time: every
+    frame is processed and answered (a command or an ignored location), each image's stamp
+    is i / fps, and the pose each frame was rendered with is where closed_loop's arm is
+    when every command is applied at its frame's time."""
     from rclpy.executors import MultiThreadedExecutor
-    from activeloc_ros.nodes.arm_node import ArmNode
-    from activeloc_ros.nodes.camera_node import CameraNode
     from activeloc_ros.nodes.controller_node import ControllerNode
     from activeloc_ros.nodes.perception_node import PerceptionNode
+    from activeloc_ros.nodes.sim_node import SimNode
     frames = 8
     nodes = [PerceptionNode(context=context, cli_args=params_args('perception', SIM)),
              ControllerNode(context=context, cli_args=params_args('controller', SIM)),
-             ArmNode(context=context, cli_args=params_args('arm', 'backend:=sim', SIM)),
-             CameraNode(context=context, cli_args=params_args(
-                 'camera', f'source:=virtual:bag:{default_bag()}', 'lockstep:=true', SIM,
-                 f'max_frames:={frames}'))]
-    camera = nodes[-1]
+             SimNode(context=context, cli_args=params_args(
+                 'sim', 'lockstep:=true', SIM, f'max_frames:={frames}'))]
+    sim = nodes[-1]
     probe = Probe(context)
     executor = MultiThreadedExecutor(num_threads=4, context=context)
     for node in nodes + [probe.node]:
         executor.add_node(node)
     try:
-        assert spin_until(executor, lambda: camera.finished, 120), 'lockstep did not finish'
+        assert spin_until(executor, lambda: sim.finished, 120), 'lockstep did not finish'
         spin_until(executor, lambda: len(probe.commands) + len(probe.ignored) >= frames, 2.0)
     finally:
         executor.shutdown()
         for node in nodes + [probe.node]:
             node.destroy_node()
-    assert not camera.lockstep.missed, camera.lockstep.missed
+    assert not sim.lockstep.missed, sim.lockstep.missed
     times = [time_ns(i, 10.0) for i in range(frames)]
     assert [stamp_ns(p) for p in probe.poses] == times
     assert [stamp_ns(i) for i in probe.infos] == times
+    assert [stamp_ns(s) for s in probe.states] == times      # one arm state per frame
     # one answer per frame, in step: a command, or the location the controller ignored
     answers = sorted([stamp_ns(c) for c in probe.commands]
                      + [stamp_ns(loc) for loc in probe.ignored])
@@ -353,6 +337,7 @@ def test_lockstep_graph_steps_frame_by_frame_like_closed_loop(context):
     (['--camera', 'virtual:nosuch/scene'], 'scene not found'),
     (['--camera', 'virtual:device:0'], 'shows a recorded scene'),
     (['--mode', 'lockstep', '--camera', f'bag:{default_bag()}'], 'needs --camera virtual'),
+    (['--arm', 'serial:/dev/null'], "--arm must be 'sim'"),
 ])
 def test_bringup_refuses_bad_virtual_cameras_before_any_node(tmp_path, args, message):
     logs = tmp_path / 'logs'
@@ -366,7 +351,7 @@ def test_bringup_refuses_bad_virtual_cameras_before_any_node(tmp_path, args, mes
 
 def test_bringup_aim_limits_are_the_arms_or_on_request_the_screens(tmp_path):
     """As in the screen benchmark: by default only the arm limits the aim; with
-    --aim-limits screen the controller gets the screen's aim limits, from the camera's
+    --aim-limits screen the controller gets the screen's aim limits, from the sim's
     params files, unless the user's own files set them."""
     from activeloc_ros.bringup import node_arguments, parse_args
     wider = tmp_path / 'wider.yaml'

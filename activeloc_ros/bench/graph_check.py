@@ -2,9 +2,9 @@
 
     python -m activeloc_ros.bench graph-check --scene otb_crossing --frames 40
 
-Runs ``bringup --mode lockstep --camera virtual:SCENE --arm sim --record DIR`` (every node
-in its own process, the packaged params), reads the pan and tilt each frame was rendered
-with (``camera/pose``), runs ``closed_loop.run_episode`` in lockstep on the same frames
+Runs ``bringup --mode lockstep --camera virtual:SCENE --record DIR`` (every node in its own
+process, the packaged params), reads the pan and tilt each frame was rendered with (the sim
+node's ``camera/pose``), runs ``closed_loop.run_episode`` in lockstep on the same frames
 with the same perception and controller settings, and prints the largest per-frame
 difference of the camera angles. Exit 0 when every frame agrees within the tolerance.
 """
@@ -44,7 +44,7 @@ def bench_poses(scene: str, frames: int) -> list[tuple[float, float, float]]:
     fields = PerceptionConfig.descriptions()
     pointer = ModelPointer('ours', {k: v for k, v in perception.items() if k in fields})
     controller = config_from(control)
-    # the screen the graph's camera renders (its packaged params), not a default one
+    # the screen the graph's sim node renders (its packaged params), not a default one
     world = screen_world(scene_frames(), fps=fps, screen=camera_screen(), controller=controller)
     episode = run_episode(world, pointer, controller=controller, mode='lockstep')
     source.close()
@@ -54,11 +54,11 @@ def bench_poses(scene: str, frames: int) -> list[tuple[float, float, float]]:
 def graph_poses(scene: str, frames: int, record: Path) -> list[tuple[float, float, float]]:
     """(t, pan, tilt) per frame of a lockstep bringup run recorded to `record`."""
     from activeloc_ros.nodes.lockstep import recorded_poses
-    params = record.parent / f'{record.name}-camera.yaml'
+    params = record.parent / f'{record.name}-sim.yaml'
     params.write_text(yaml.safe_dump(
-        {'camera': {'ros__parameters': {'max_frames': frames}}}))
+        {'sim': {'ros__parameters': {'max_frames': frames}}}))
     command = [sys.executable, '-m', 'activeloc_ros.bringup', '--mode', 'lockstep',
-               '--camera', f'virtual:{scene}', '--arm', 'sim', '--params', str(params),
+               '--camera', f'virtual:{scene}', '--params', str(params),
                '--record', str(record), '--log-dir', str(record.parent / 'logs')]
     print('$ ' + ' '.join(command), file=sys.stderr)
     done = subprocess.run(command, check=False)

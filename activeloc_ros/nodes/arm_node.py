@@ -1,15 +1,11 @@
 """The Braccio arm: follows ``joint_commands`` and publishes ``joint_states`` (radians).
 
 Back ends (parameter ``backend``): ``sim`` moves a simulated Braccio at the servos' speed in
-whole degrees (``control.SimArm``), the arm the benchmarks use; ``serial`` drives
+whole degrees (``control.SimArm``), an arm without hardware; ``serial`` drives
 ``braccio_serial.ino`` over a serial port (``control.serial_link.BraccioLink``) and publishes
 the state it echoes, surviving a silent, noisy or vanishing port. On Ctrl-C the arm stops
-where it is, or goes home slowly (``stop_mode``), before the node ends.
-
-On a simulated clock (``use_sim_time``, sim back end only) the arm moves with ``/clock``:
-it answers every clock message with its state at that time and every command with its
-state once applied, and publishes nothing on a timer, so a lockstep camera can count the
-answers (``activeloc_ros.nodes.lockstep``). Its clock starts at 0, as in ``closed_loop``.
+where it is, or goes home slowly (``stop_mode``), before the node ends. (The arm of the
+projected-screen simulation, whose camera it aims, is the sim node's.)
 
 Any command a topic can carry is safe: a malformed one (unknown or repeated names, lengths
 that differ, a position that is not a finite angle in degrees, such as 1e308 rad) is logged
@@ -27,7 +23,6 @@ from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
@@ -35,8 +30,7 @@ from activeloc_ros.control import (
     clamp_to_limits, HOME_DEG, JOINT_NAMES, pose_problem, SimArm)
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.serial_link import BraccioLink
-from activeloc_ros.errors import ConfigError
-from activeloc_ros.nodes.messages import joint_state, stamp_ns, time_from_ns
+from activeloc_ros.nodes.messages import joint_state
 from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
 
 
@@ -123,10 +117,6 @@ class ArmNode(Node):
         self._last_link_event = ''
         self._lock = threading.RLock()  # stop_on_purpose may come from another thread
         self._stopped = threading.Event()
-        self.sim_time = self.get_parameter('use_sim_time').value
-        self._tick_ns: int | None = None   # simulated time: the newest /clock, ns
-        if self.sim_time and self.backend != 'sim':
-            raise ConfigError('the serial arm moves in real time: use_sim_time must be false')
 
         if self.backend == 'sim':
             self.sim = SimArm(values['sim_start_deg'], self._now(),
@@ -144,18 +134,10 @@ class ArmNode(Node):
         self.publisher = self.create_publisher(JointState, 'joint_states', 10)
         self.create_subscription(JointState, 'joint_commands', self.on_command,
                                  QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
-        # on a simulated clock the timer only serves stopping, which must not wait for time
-        # that stands still between clock ticks
-        self.state_timer = self.create_timer(
-            1.0 / values['state_rate'], self.on_state_timer,
-            clock=Clock(clock_type=ClockType.STEADY_TIME) if self.sim_time else None)
+        self.state_timer = self.create_timer(1.0 / values['state_rate'], self.on_state_timer)
         self.diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_timer(1.0, self.publish_diagnostics,
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
-        if self.sim_time:
-            self.create_subscription(
-                ClockMsg, '/clock', self.on_clock,
-                QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
         where = values['port'] if self.link else 'simulation'
         self.get_logger().info(f'Braccio arm ({self.backend}: {where}), stop mode '
                                f'{values["stop_mode"]}')
@@ -174,10 +156,6 @@ class ArmNode(Node):
             f'{name} {values[name]!r}' for name in sorted(changed)))
 
     def _now(self) -> float:
-        if self._tick_ns is not None:
-            # the time this node's own /clock callback moved the arm to, which the node
-            # clock may not show yet (its subscription runs separately)
-            return self._tick_ns / 1e9
         return self.get_clock().now().nanoseconds * 1e-9
 
     # -- the arm, whichever back end -------------------------------------------------------
@@ -224,15 +202,6 @@ class ArmNode(Node):
             self.get_logger().warning(f'clamped joint commands outside the limits '
                                       f'({self.clamped} so far)', throttle_duration_sec=5.0)
         self._send(safe)
-        if self.sim_time:
-            self._publish_state(self.joints(), time_from_ns(self._tick_ns or 0))
-
-    def on_clock(self, msg: ClockMsg) -> None:
-        """Simulated time: move to the tick and answer it with the state there."""
-        with self._lock:
-            self._tick_ns = max(self._tick_ns or 0, stamp_ns(msg.clock))
-            joints = self.joints()
-        self._publish_state(joints, msg.clock)
 
     def on_poll(self) -> None:
         with self._lock:
@@ -303,7 +272,7 @@ class ArmNode(Node):
                 if self.stop_done():
                     self._stopped.set()
             joints = self.joints()
-        if joints is not None and not self.sim_time:
+        if joints is not None:
             self._publish_state(joints, self.get_clock().now().to_msg())
 
     def _publish_state(self, joints, stamp) -> None:
@@ -380,7 +349,7 @@ class ArmNode(Node):
             where = self.joints()
             if self.link is not None:
                 self.link.close()
-        if where is not None and not self.sim_time:
+        if where is not None:
             self._publish_state(where, self.get_clock().now().to_msg())
         # the last state must reach the subscribers before this process ends
         self.publisher.wait_for_all_acked(Duration(seconds=0.5))

@@ -2,41 +2,29 @@
 
     ros2 run activeloc_ros camera_node --ros-args -p source:=bag:bags/vtest -p loop:=true
 
-A `virtual:SCENE` source is the projected-screen experiment in software: the scene on a
-virtual screen (`screen.VirtualScreen`), seen by a camera the arm aims. The node then
-subscribes `joint_states` (the arm's pose aims the camera) and publishes `camera/pose`
-(sensor_msgs/JointState named pan, tilt: radians, stamped like the image it rendered).
-With `lockstep` (and `use_sim_time` on every node) the node owns a simulated `/clock` and
-steps the graph frame by frame as `closed_loop` does (`activeloc_ros.nodes.lockstep`).
+A plain camera driver: a recorded bag, video or folder, a device or a RealSense. The
+projected-screen experiment's virtual camera, which an arm aims, is the sim node's
+(`activeloc_ros.nodes.sim_node`).
 """
-import math
 import threading
 import time
 
-from builtin_interfaces.msg import Time
-from geometry_msgs.msg import PointStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rosgraph_msgs.msg import Clock as ClockMsg
-from sensor_msgs.msg import CameraInfo, Image, JointState
+from sensor_msgs.msg import CameraInfo, Image
 
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
-from activeloc_ros.errors import ConfigError, SourceError
+from activeloc_ros.errors import SourceError
 from activeloc_ros.images import rgb_to_image_fields
-from activeloc_ros.nodes.lockstep import IDLE, Lockstep
-from activeloc_ros.nodes.messages import arm_joints_deg, stamp_ns, time_from_ns, time_from_s
+from activeloc_ros.nodes.messages import camera_info, time_from_s
 from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
-from activeloc_ros.nodes.settings import MAPPING_PARAMS, mapping_from, SCREEN_PARAMS, screen_from
-from activeloc_ros.screen import VirtualScreen
 from activeloc_ros.sources import default_bag, open_source, Pacer, pinhole_matrix
 
 # Parameters without read_only take effect at once: the next frame uses them.
 PARAMS = [
     Param('source', f'bag:{default_bag()}',
-          'bag:PATH | video:PATH | folder:PATH | device:N | realsense | virtual:SCENE '
-          '(SCENE: bag:PATH, video:PATH, folder:PATH, a sequence folder or name)',
-          read_only=True),
+          'bag:PATH | video:PATH | folder:PATH | device:N | realsense', read_only=True),
     Param('image_topic', '', 'image topic to replay from a bag (empty: the first one)',
           read_only=True),
     Param('rate', 1.0, 'replay speed of recorded sources (1.0 = recorded timing)', positive),
@@ -53,21 +41,11 @@ PARAMS = [
     Param('realsense_fps', 30, 'RealSense colour frame rate', positive, read_only=True),
     Param('max_frames', 0, 'stop after this many frames (0: no limit)', non_negative),
     Param('wait_for_subscriber', 120.0, 'recorded sources: seconds to wait for a subscriber '
-          '(lockstep: for the whole graph) before the first frame, so a model still loading '
-          'misses nothing (0: do not wait)', non_negative),
+          'before the first frame, so a model still loading misses nothing (0: do not wait)',
+          non_negative),
     Param('min_subscribers', 1, 'recorded sources: image subscribers to wait for (up to '
           'wait_for_subscriber) before the first frame; bringup --record makes it 2, so the '
           'recording holds the first frame too', in_range(1, 1000)),
-    Param('lockstep', False, 'virtual sources: step the graph frame by frame on a simulated '
-          '/clock this node publishes, as closed_loop does (needs use_sim_time on every '
-          'node)', read_only=True),
-    Param('lockstep_timeout', 60.0, "lockstep: longest wait for the arm's pose and for "
-          'perception, s', positive, read_only=True),
-    Param('lockstep_command_timeout', 2.0, "lockstep: longest wait for the controller's "
-          "answer to an action location and for the arm's confirmation, s", positive,
-          read_only=True),
-    *SCREEN_PARAMS,
-    *MAPPING_PARAMS,
 ]
 
 
@@ -78,39 +56,15 @@ class CameraNode(Node):
                               use_global_arguments=kwargs.get('use_global_arguments', True),
                               on_change=self.on_parameters)
         p = self.params
-        self.virtual = p['source'].startswith('virtual:')
-        screen = None
-        if self.virtual:
-            screen = VirtualScreen(screen_from(p), mapping=mapping_from(p))
-        if p['lockstep'] and not self.virtual:
-            raise ConfigError("parameter 'lockstep' needs a virtual:SCENE source")
-        if p['lockstep'] and not self.get_parameter('use_sim_time').value:
-            raise ConfigError("parameter 'lockstep' runs the graph on simulated time: set "
-                              'use_sim_time:=true on every node')
         self.source = open_source(
             p['source'], clock=self._now_s, image_topic=p['image_topic'],
             folder_fps=p['folder_fps'], realsense_fps=p['realsense_fps'],
-            realsense_size=(p['realsense_width'], p['realsense_height']), screen=screen)
+            realsense_size=(p['realsense_width'], p['realsense_height']))
         # The writer keeps the last frames until every reader has them, so a recorder gets
         # each one; perception's own depth-1 queue still hands it only the newest.
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.image_pub = self.create_publisher(Image, 'camera/image_raw', reliable)
         self.info_pub = self.create_publisher(CameraInfo, 'camera/camera_info', 10)
-        self.lockstep = None
-        if self.virtual:
-            self.pose_pub = self.create_publisher(JointState, 'camera/pose', reliable)
-            self.state_sub = self.create_subscription(JointState, 'joint_states',
-                                                      self.on_joint_states, reliable)
-        if p['lockstep']:
-            self.lockstep = Lockstep(self.source.fps, timeout=p['lockstep_timeout'],
-                                     command_timeout=p['lockstep_command_timeout'])
-            self.clock_pub = self.create_publisher(ClockMsg, '/clock', reliable)
-            self.location_sub = self.create_subscription(
-                PointStamped, 'action_location', self.on_location, reliable)
-            self.command_sub = self.create_subscription(
-                JointState, 'joint_commands', self.on_command, reliable)
-            self.ignored_sub = self.create_subscription(
-                PointStamped, 'action_location/ignored', self.on_ignored, reliable)
         self.pacer = Pacer(p['rate'])
         self.pending = None
         self.published = 0
@@ -123,13 +77,9 @@ class CameraNode(Node):
         self._source_lock = threading.Lock()
         self._closed = False
         self.waiting = not self.source.live and p['wait_for_subscriber'] > 0
-        # a steady timer: in lockstep the simulated clock stands still until this node moves it
         self.timer = self.create_timer(0.005, self.tick,
                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
-        mode = (f'lockstep, {self.source.fps:g} frames per simulated second'
-                if p['lockstep'] else 'real time')
-        self.get_logger().info(f'streaming {p["source"]} ({mode})'
-                               + (f'; {screen.describe()}' if screen else ''))
+        self.get_logger().info(f'streaming {p["source"]}')
 
     def on_parameters(self, values: dict, changed: set) -> None:
         """A run-time change (read-only parameters are refused before): applied at once."""
@@ -143,26 +93,6 @@ class CameraNode(Node):
     def _now_s(self) -> float:
         return self.get_clock().now().nanoseconds / 1e9
 
-    # -- inputs of a virtual camera --------------------------------------------------------
-
-    def on_joint_states(self, msg: JointState) -> None:
-        joints = arm_joints_deg(msg)
-        if joints is None or not all(math.isfinite(q) for q in joints):
-            return
-        if self.lockstep is not None:
-            self.lockstep.on_state(stamp_ns(msg.header.stamp), joints)
-        else:
-            self.source.set_joints(joints)
-
-    def on_location(self, msg: PointStamped) -> None:
-        self.lockstep.on_location(stamp_ns(msg.header.stamp), time.monotonic())
-
-    def on_command(self, msg: JointState) -> None:
-        self.lockstep.on_command(stamp_ns(msg.header.stamp))
-
-    def on_ignored(self, msg: PointStamped) -> None:
-        self.lockstep.on_ignored(stamp_ns(msg.header.stamp))
-
     # -- frames ----------------------------------------------------------------------------
 
     def tick(self) -> None:
@@ -172,9 +102,6 @@ class CameraNode(Node):
 
     def _tick(self) -> None:
         if self.finished or (self.waiting and not self._subscriber_ready()):
-            return
-        if self.lockstep is not None:
-            self._lockstep_tick()
             return
         if self.pending is None:
             self.pending = self._next_frame()
@@ -189,49 +116,11 @@ class CameraNode(Node):
         if self.params['max_frames'] and self.published >= self.params['max_frames']:
             self._finish('max_frames reached')
 
-    def _lockstep_tick(self) -> None:
-        step, now = self.lockstep, time.monotonic()
-        if step.phase == IDLE:
-            self.pending = self._next_frame()
-            if self.pending is None:
-                self._end_of_stream()
-                return
-            self._publish_clock(step.begin(now))
-            return
-        action = step.poll(now)
-        if action == 'tick':
-            self._publish_clock(step.t_ns)
-        elif action == 'render':
-            if step.pose is not None:
-                self.source.set_joints(step.pose)
-            self.publish(self.pending, stamp=time_from_ns(step.t_ns))
-            self.pending = None
-            step.rendered(now)
-        elif action == 'next':
-            for problem in set(step.missed) - self.logged_problems:
-                self.get_logger().warning(f'lockstep: {problem} (frame {step.index})')
-                self.logged_problems.add(problem)
-            if self.params['max_frames'] and self.published >= self.params['max_frames']:
-                self._finish('max_frames reached')
-
-    def _publish_clock(self, t_ns: int) -> None:
-        self.clock_pub.publish(ClockMsg(clock=time_from_ns(t_ns)))
-
-    def _graph_ready(self) -> bool:
-        """Lockstep needs perception, the controller and the arm before the first tick."""
-        return (self._image_subscribers()
-                and self.state_sub.get_publisher_count() > 0
-                and self.command_sub.get_publisher_count() > 0
-                and self.ignored_sub.get_publisher_count() > 0
-                and self.location_sub.get_publisher_count() > 0)
-
     def _image_subscribers(self) -> bool:
         return self.image_pub.get_subscription_count() >= self.params['min_subscribers']
 
     def _subscriber_ready(self) -> bool:
-        if self.lockstep is not None and self._graph_ready():
-            self.get_logger().info('perception, controller and arm are up: lockstep starts')
-        elif self.lockstep is None and self._image_subscribers():
+        if self._image_subscribers():
             self.get_logger().info('a subscriber is listening: replay starts')
         elif time.monotonic() - self.started_at > self.params['wait_for_subscriber']:
             self.get_logger().warning('no subscriber after '
@@ -242,13 +131,11 @@ class CameraNode(Node):
         return True
 
     def _next_frame(self):
-        # a virtual camera renders a frame when it publishes it, with the pose of that moment
-        read = self.source.read_scene if self.virtual else self.source.read
         try:
-            frame = read()
+            frame = self.source.read()
             if frame is None and self.params['loop']:
                 self.source.rewind()
-                frame = read()
+                frame = self.source.read()
         except SourceError as exc:
             self.failure = str(exc)
             return None
@@ -257,38 +144,21 @@ class CameraNode(Node):
             self.logged_problems.add(problem)
         return frame
 
-    def publish(self, frame, *, stamp: Time | None = None) -> None:
-        if self.virtual:
-            frame = self.source.render(frame)
+    def publish(self, frame) -> None:
         height, width = frame.rgb.shape[:2]
-        if stamp is None and self.params['restamp']:
-            stamp = self.get_clock().now().to_msg()
-        elif stamp is None:
-            stamp = time_from_s(frame.stamp)
+        stamp = (self.get_clock().now().to_msg() if self.params['restamp']
+                 else time_from_s(frame.stamp))
         image = Image(**rgb_to_image_fields(frame.rgb, self.params['encoding']))
         image.header.stamp = stamp
         image.header.frame_id = self.params['frame_id']
         self.image_pub.publish(image)
-        self.info_pub.publish(self.camera_info(width, height, image.header))
-        if self.virtual:
-            self.pose_pub.publish(JointState(header=image.header, name=['pan', 'tilt'],
-                                             position=[self.source.pan, self.source.tilt]))
-        self.published += 1
-        if self.published == 1:
-            self.get_logger().info(f'first frame published ({width}x{height})')
-
-    def camera_info(self, width: int, height: int, header) -> CameraInfo:
         k = self.source.camera_matrix()
         if k is None:
             k = pinhole_matrix(width, height, self.params['hfov_deg'])
-        info = CameraInfo(header=header, width=width, height=height,
-                          distortion_model='plumb_bob')
-        info.k = [float(v) for v in k.ravel()]
-        info.d = [0.0] * 5
-        info.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
-        info.p = [float(k[0, 0]), 0.0, float(k[0, 2]), 0.0,
-                  0.0, float(k[1, 1]), float(k[1, 2]), 0.0, 0.0, 0.0, 1.0, 0.0]
-        return info
+        self.info_pub.publish(camera_info(k, width, height, image.header))
+        self.published += 1
+        if self.published == 1:
+            self.get_logger().info(f'first frame published ({width}x{height})')
 
     def _end_of_stream(self) -> None:
         skipped = self.source.skipped
@@ -310,9 +180,6 @@ class CameraNode(Node):
         skipped = sum(self.source.skipped.values())
         self.get_logger().info(f'{why}: {self.published} frames published'
                                + (f', {skipped} skipped' if skipped else ''))
-        if self.lockstep is not None and self.lockstep.missed:
-            self.get_logger().warning('lockstep timeouts: ' + ', '.join(
-                f'{kind}: {n}' for kind, n in sorted(self.lockstep.missed.items())))
 
     def destroy_node(self):
         with self._source_lock:

@@ -43,6 +43,19 @@ def joint_state(joints_deg: Sequence[float], stamp=None):
     return msg
 
 
+def camera_info(k, width: int, height: int, header):
+    """A sensor_msgs/CameraInfo of a distortion-free pinhole camera with matrix ``k``
+    (3x3)."""
+    from sensor_msgs.msg import CameraInfo
+    info = CameraInfo(header=header, width=width, height=height, distortion_model='plumb_bob')
+    info.k = [float(v) for v in k.ravel()]
+    info.d = [0.0] * 5
+    info.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    info.p = [float(k[0, 0]), 0.0, float(k[0, 2]), 0.0,
+              0.0, float(k[1, 1]), float(k[1, 2]), 0.0, 0.0, 0.0, 1.0, 0.0]
+    return info
+
+
 def arm_joints_deg(msg) -> list[float] | None:
     """The six Braccio joints in degrees, in `JOINT_NAMES` order, from a JointState that
     names them all (in any order, among others); None if it does not."""

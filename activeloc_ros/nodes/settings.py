@@ -2,9 +2,9 @@
 their values, in one place.
 
 The arm mapping (how the Braccio's joints aim the camera) is declared by the controller,
-which steers through it, and by the virtual camera, which renders what the arm aims at.
-The virtual screen is declared by the camera; bringup and graph-check build the same screen
-from the camera's parameter values, without the node.
+which steers through it, and by the sim node, whose camera renders what the arm aims at.
+The virtual screen is declared by the sim node; bringup and graph-check build the same
+screen from its parameter values, without the node.
 """
 from activeloc_ros.checks import one_of
 from activeloc_ros.control import ArmMapping, HOME_DEG, JOINT_NAMES, pose_problem
@@ -41,7 +41,7 @@ def mapping_from(values: dict) -> ArmMapping:
                       tilt_gains=tuple(values['tilt_gains']))
 
 
-# camera parameter -> ScreenConfig field
+# sim node parameter -> ScreenConfig field
 SCREEN_FIELDS = {'screen_width_m': 'screen_width_m', 'screen_height_m': 'screen_height_m',
                  'view_fraction': 'view_fraction', 'distance_m': 'distance_m',
                  'virtual_width': 'width', 'virtual_height': 'height',

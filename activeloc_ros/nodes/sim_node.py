@@ -1,0 +1,336 @@
+"""Simulation node: the projected-screen world (`world.ScreenWorld`) in the graph.
+
+    ros2 run activeloc_ros sim_node --ros-args -p scene:=otb_crossing
+
+A recorded scene plays on the virtual screen, seen by a camera that a simulated Braccio
+(`control.SimArm`, whole degrees at its servos' speed) aims. The node is the camera and the
+arm of a virtual run, so a frame and the pose it was rendered with never disagree. It moves
+the arm to `joint_commands` and publishes `joint_states`, `camera/image_raw`,
+`camera/camera_info` and `camera/pose` (sensor_msgs/JointState named pan, tilt: radians,
+stamped like the image).
+
+In real time the scene plays at its own rate (times `rate`). With `lockstep` (and
+`use_sim_time` on every node) the node owns a simulated `/clock` and steps the graph frame
+by frame as `closed_loop` does (`activeloc_ros.nodes.lockstep`).
+"""
+import math
+import threading
+import time
+
+from geometry_msgs.msg import PointStamped
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock as ClockMsg
+from sensor_msgs.msg import CameraInfo, Image, JointState
+
+from activeloc_ros.checks import in_range, non_negative, one_of, positive
+from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
+from activeloc_ros.data import FrameTruth
+from activeloc_ros.errors import ConfigError, SourceError
+from activeloc_ros.images import rgb_to_image_fields
+from activeloc_ros.nodes.lockstep import Lockstep, time_ns
+from activeloc_ros.nodes.messages import (
+    arm_joints_deg, camera_info, joint_state, stamp_ns, time_from_ns)
+from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
+from activeloc_ros.nodes.settings import MAPPING_PARAMS, mapping_from, SCREEN_PARAMS, screen_from
+from activeloc_ros.screen import VirtualScreen
+from activeloc_ros.sources import (
+    default_bag, DEFAULT_SCENE_FPS, open_scene, Pacer, SCENE_HELP)
+from activeloc_ros.world import ScreenWorld
+
+# Parameters without read_only take effect at once.
+PARAMS = [
+    Param('scene', f'bag:{default_bag()}', f'what the virtual screen shows: {SCENE_HELP}',
+          read_only=True),
+    Param('image_topic', '', 'image topic to play from a bag scene (empty: the first one)',
+          read_only=True),
+    Param('folder_fps', 10.0, 'frame rate of folder:PATH scenes', positive, read_only=True),
+    Param('rate', 1.0, 'real time: speed of the scene (1.0 = its own rate)', positive),
+    Param('loop', False, 'restart the scene at its end instead of finishing'),
+    Param('encoding', 'rgb8', 'encoding of published images', one_of('rgb8', 'bgr8')),
+    Param('frame_id', 'camera_color_optical_frame', 'frame_id of published headers'),
+    Param('state_rate', 50.0, 'real time: joint_states publishing rate, Hz',
+          in_range(1.0, 500.0), read_only=True),
+    Param('step_delay_ms', 20, 'servo step delay of the simulated arm, ms per degree',
+          in_range(*STEP_DELAY_MS_RANGE), read_only=True),
+    Param('max_frames', 0, 'stop after this many frames (0: no limit)', non_negative),
+    Param('wait_for_subscriber', 120.0, 'seconds to wait for a subscriber (lockstep: for the '
+          'whole graph) before the first frame, so a model still loading misses nothing '
+          '(0: do not wait)', non_negative),
+    Param('min_subscribers', 1, 'image subscribers to wait for (up to wait_for_subscriber) '
+          'before the first frame; bringup --record makes it 2, so the recording holds the '
+          'first frame too', in_range(1, 1000)),
+    Param('lockstep', False, 'step the graph frame by frame on a simulated /clock this node '
+          'publishes, as closed_loop does (needs use_sim_time on every node)', read_only=True),
+    Param('lockstep_timeout', 60.0, "lockstep: longest wait for perception's location, s",
+          positive, read_only=True),
+    Param('lockstep_command_timeout', 5.0, "lockstep: longest wait for the arm state's "
+          "echo and for the controller's answer to an action location, s; longer than the "
+          "DDS heartbeat period (Fast DDS: 3 s) after which a reliable message lost on the "
+          'way is sent again', positive, read_only=True),
+    *SCREEN_PARAMS,
+    *MAPPING_PARAMS,
+]
+
+
+class SimNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__('sim', **kwargs)
+        self.params = declare(self, PARAMS, cli_args=kwargs.get('cli_args'),
+                              use_global_arguments=kwargs.get('use_global_arguments', True),
+                              on_change=self.on_parameters)
+        p = self.params
+        self.sim_time = self.get_parameter('use_sim_time').value
+        if p['lockstep'] and not self.sim_time:
+            raise ConfigError("parameter 'lockstep' runs the graph on simulated time: set "
+                              'use_sim_time:=true on every node')
+        if self.sim_time and not p['lockstep']:
+            raise ConfigError('on simulated time this node owns the clock: set lockstep:=true')
+        screen = VirtualScreen(screen_from(p), mapping=mapping_from(p))
+        self.scene = open_scene(p['scene'], image_topic=p['image_topic'],
+                                folder_fps=p['folder_fps'])
+        self.fps = self.scene.fps or DEFAULT_SCENE_FPS
+        self.world = ScreenWorld((), fps=self.fps, screen=screen, home_deg=p['home_deg'],
+                                 step_delay_ms=p['step_delay_ms'])
+        self.index = 0                    # the next scene frame (a loop goes on counting)
+        self.lockstep = None
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.image_pub = self.create_publisher(Image, 'camera/image_raw', reliable)
+        self.info_pub = self.create_publisher(CameraInfo, 'camera/camera_info', 10)
+        self.pose_pub = self.create_publisher(JointState, 'camera/pose', reliable)
+        self.state_pub = self.create_publisher(JointState, 'joint_states', reliable)
+        self.command_sub = self.create_subscription(
+            JointState, 'joint_commands', self.on_command,
+            QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        if p['lockstep']:
+            self.lockstep = Lockstep(timeout=p['lockstep_timeout'],
+                                     command_timeout=p['lockstep_command_timeout'])
+            self.clock_pub = self.create_publisher(ClockMsg, '/clock', reliable)
+            self.location_sub = self.create_subscription(
+                PointStamped, 'action_location', self.on_location, reliable)
+            self.ignored_sub = self.create_subscription(
+                PointStamped, 'action_location/ignored', self.on_ignored, reliable)
+            self.create_subscription(JointState, 'joint_states', self.on_state, reliable)
+        else:
+            self.create_timer(1.0 / p['state_rate'], self.publish_state, clock=steady)
+        self.pacer = Pacer(p['rate'])
+        self.pending = None               # real time: the next scene frame, when it is due
+        self.published = 0
+        self.rejected = 0
+        self.logged_problems = set()
+        self.finished = False
+        self.failure: str | None = None   # why the stream ended in error (run() exits 1)
+        self.started_at = time.monotonic()
+        # a multi-threaded executor may run a tick while another thread destroys the node
+        self._lock = threading.Lock()
+        self._closed = False
+        self.waiting = p['wait_for_subscriber'] > 0
+        # a steady timer: in lockstep the simulated clock stands still until this node moves it
+        self.timer = self.create_timer(0.005, self.tick, clock=steady)
+        mode = (f'lockstep, {self.fps:g} frames per simulated second' if p['lockstep']
+                else 'real time')
+        self.get_logger().info(f'scene {p["scene"]} ({mode}); {screen.describe()}')
+
+    def on_parameters(self, values: dict, changed: set) -> None:
+        """A run-time change (read-only parameters are refused before): applied at once."""
+        changed = changed & values.keys()     # (use_sim_time is rclpy's)
+        self.params.update({name: values[name] for name in changed})
+        if 'rate' in changed:
+            self.pacer.set_rate(values['rate'])
+        self.get_logger().info('set at run time: ' + ', '.join(
+            f'{name} {values[name]!r}' for name in sorted(changed)))
+
+    def _now(self) -> float:
+        """The world's time: simulated (the frame's), else seconds since the node started."""
+        if self.lockstep is not None:
+            return self.world.t
+        return time.monotonic() - self.started_at
+
+    # -- inputs ----------------------------------------------------------------------------
+
+    def on_command(self, msg: JointState) -> None:
+        joints = arm_joints_deg(msg)
+        with self._lock:
+            if joints is None or not all(math.isfinite(q) for q in joints):
+                self.rejected += 1
+                self.get_logger().warning(
+                    'ignored a joint command without six finite joint angles by name '
+                    f'({self.rejected} so far)', throttle_duration_sec=5.0)
+            elif not self._closed:
+                self.world.act(joints, self._now())   # clamped into the joint limits
+            if self.lockstep is not None:
+                self.lockstep.on_command(stamp_ns(msg.header.stamp))
+
+    def on_location(self, msg: PointStamped) -> None:
+        with self._lock:
+            self.lockstep.on_location(stamp_ns(msg.header.stamp), time.monotonic())
+
+    def on_state(self, msg: JointState) -> None:
+        """Lockstep: our own arm state back, so it reached the controller too."""
+        with self._lock:
+            self.lockstep.on_state(stamp_ns(msg.header.stamp))
+
+    def on_ignored(self, msg: PointStamped) -> None:
+        with self._lock:
+            self.lockstep.on_ignored(stamp_ns(msg.header.stamp))
+
+    # -- outputs ---------------------------------------------------------------------------
+
+    def publish_state(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            joints = self.world.advance(self._now())
+        self.state_pub.publish(joint_state(joints, self.get_clock().now().to_msg()))
+
+    def tick(self) -> None:
+        with self._lock:
+            if not (self._closed or self.finished
+                    or (self.waiting and not self._subscriber_ready())):
+                if self.lockstep is not None:
+                    self._lockstep_tick()
+                else:
+                    self._realtime_tick()
+
+    def _realtime_tick(self) -> None:
+        if self.pending is None:
+            self.pending = self._next_scene()
+            if self.pending is None:
+                self._end_of_stream()
+                return
+        index, rgb = self.pending
+        if time.monotonic() < self.pacer.due(index / self.fps, time.monotonic()):
+            return
+        self.pending = None
+        self.world.show(index, rgb, FrameTruth(index, None, ()), self._now())
+        self.world.advance(self.world.t)
+        self.publish(self.get_clock().now().to_msg())
+
+    def _lockstep_tick(self) -> None:
+        step, now = self.lockstep, time.monotonic()
+        action = step.poll(now)
+        if action == 'render':
+            self.publish(time_from_ns(step.t_ns))
+            step.rendered(now)
+            return
+        if action != 'next':
+            return
+        for problem in set(step.missed) - self.logged_problems:
+            self.get_logger().warning(f'lockstep: {problem} (frame {self.world.index})')
+            self.logged_problems.add(problem)
+        if self.params['max_frames'] and self.published >= self.params['max_frames']:
+            self._finish('max_frames reached')
+            return
+        scene = self._next_scene()
+        if scene is None:
+            self._end_of_stream()
+            return
+        index, rgb = scene
+        t_ns = time_ns(index, self.fps)
+        stamp = time_from_ns(t_ns)
+        self.world.show(index, rgb, FrameTruth(index, None, ()))
+        self.clock_pub.publish(ClockMsg(clock=stamp))
+        self.state_pub.publish(joint_state(self.world.advance(self.world.t), stamp))
+        step.begin(t_ns, now)
+
+    def _next_scene(self):
+        try:
+            frame = self.scene.read()
+            if frame is None and self.params['loop']:
+                self.scene.rewind()
+                frame = self.scene.read()
+        except SourceError as exc:
+            self.failure = str(exc)
+            return None
+        for problem in set(self.scene.skipped) - self.logged_problems:
+            self.get_logger().warning(f'skipping frames: {problem}')
+            self.logged_problems.add(problem)
+        if frame is None:
+            return None
+        self.index += 1
+        return self.index - 1, frame.rgb
+
+    def publish(self, stamp) -> None:
+        """Render the shown frame from the arm's pose now and publish it, stamped ``stamp``."""
+        view = self.world.observe()
+        height, width = view.rgb.shape[:2]
+        image = Image(**rgb_to_image_fields(view.rgb, self.params['encoding']))
+        image.header.stamp = stamp
+        image.header.frame_id = self.params['frame_id']
+        self.image_pub.publish(image)
+        self.info_pub.publish(camera_info(self.world.screen.K, width, height, image.header))
+        self.pose_pub.publish(JointState(header=image.header, name=['pan', 'tilt'],
+                                         position=[view.pan, view.tilt]))
+        self.published += 1
+        if self.published == 1:
+            self.get_logger().info(f'first frame published ({width}x{height})')
+
+    def _graph_ready(self) -> bool:
+        """Lockstep needs perception and the controller before the first frame."""
+        return (self._image_subscribers()
+                and self.command_sub.get_publisher_count() > 0
+                and self.ignored_sub.get_publisher_count() > 0
+                and self.location_sub.get_publisher_count() > 0)
+
+    def _image_subscribers(self) -> bool:
+        return self.image_pub.get_subscription_count() >= self.params['min_subscribers']
+
+    def _subscriber_ready(self) -> bool:
+        if self.lockstep is not None and self._graph_ready():
+            self.get_logger().info('perception and controller are up: lockstep starts')
+        elif self.lockstep is None and self._image_subscribers():
+            self.get_logger().info('a subscriber is listening: the scene starts')
+        elif time.monotonic() - self.started_at > self.params['wait_for_subscriber']:
+            self.get_logger().warning('no subscriber after '
+                                      f'{self.params["wait_for_subscriber"]:g} s: the scene '
+                                      'starts')
+        else:
+            return False
+        self.waiting = False
+        return True
+
+    def _end_of_stream(self) -> None:
+        skipped = self.scene.skipped
+        if self.failure is None and self.published == 0 and skipped:
+            self.failure = (f'{self.params["scene"]}: no frame could be shown, all '
+                            f'{sum(skipped.values())} were skipped: '
+                            + '; '.join(f'{problem} ({n})' for problem, n in skipped.items()))
+        if self.failure is not None:
+            self.finished = True
+            self.timer.cancel()
+            self.get_logger().error(f'scene failed after {self.published} frames: '
+                                    f'{self.failure}')
+            return
+        self._finish('end of scene')
+
+    def _finish(self, why: str) -> None:
+        self.finished = True
+        self.timer.cancel()
+        skipped = sum(self.scene.skipped.values())
+        self.get_logger().info(f'{why}: {self.published} frames published'
+                               + (f', {skipped} skipped' if skipped else ''))
+        if self.lockstep is not None and self.lockstep.missed:
+            self.get_logger().warning('lockstep timeouts: ' + ', '.join(
+                f'{kind}: {n}' for kind, n in sorted(self.lockstep.missed.items())))
+
+    def destroy_node(self):
+        with self._lock:
+            self._closed = True
+            self.scene.close()
+        return super().destroy_node()
+
+
+def stop(node: SimNode) -> None:
+    if not node.finished:
+        node.get_logger().info(f'stopped: {node.published} frames published')
+
+
+def main(args=None) -> int:
+    return run(SimNode, args, on_stop=stop,
+               help_text=lambda: node_help('sim_node', __doc__, PARAMS))
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
