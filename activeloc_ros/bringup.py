@@ -10,8 +10,8 @@ its `params/<node>.yaml`, or all in one executor with --in-process. With a virtu
 camera (--camera virtual:SCENE, the default) the sim node stands in for the camera and
 the arm: it shows the scene on the virtual screen and moves the simulated arm that aims
 the camera. A status line shows frames/s, frame-to-command latency (lockstep: the
-simulated time) and the action location; Ctrl-C stops the nodes in order (the arm last,
-holding still) and a summary closes the run.
+simulated time) and the action location; Ctrl-C stops the nodes in order (an arm node
+last, holding still; the sim's arm stops with the sim) and a summary closes the run.
 Exits non-zero if a node fails, logs an error, the recording fails or nothing was seen.
 
 Ctrl-C (once or more) and SIGTERM stop the graph the same way and close the bag; the nodes
@@ -69,6 +69,7 @@ STARTUP_DEADLINE_S = 180.0    # model and weights load before the first map
 DRAIN_QUIET_S = 2.0           # after the camera ends: stop once no map came for this long
 STOP_DEADLINE_S = 10.0
 ARM_STALE_S = 2.0             # realtime: no joint_states for this long at the end is reported
+#                               (an arm node's; the sim's arm ends with its scene)
 # A node's log line that bringup repeats on its console: errors, not warnings.
 ERROR_LINE = re.compile(r'\[(ERROR|FATAL)\]|^error:|^\w*Error\b|^Traceback')
 MAX_ECHOED = 10               # error lines repeated per node; the rest stay in its log
@@ -333,7 +334,8 @@ class Monitor:
     the monitor shows how far the simulated clock got instead of a latency.
     """
 
-    def __init__(self, context, *, lockstep: bool = False, cli_args=None):
+    def __init__(self, context, *, lockstep: bool = False, arm_node: bool = True,
+                 cli_args=None):
         from geometry_msgs.msg import PointStamped
         from rclpy.node import Node
         from sensor_msgs.msg import CameraInfo, JointState
@@ -345,6 +347,7 @@ class Monitor:
         self.location = None
         self.image_size = None
         self.lockstep = lockstep
+        self.arm_node = arm_node       # the arm is a node of its own, not the sim's
         self.sim_time = 0.0            # lockstep: the newest frame's simulated time, s
         self.joints: dict[str, float] = {}
         self.joints_at = -math.inf     # when the last joint_states came
@@ -558,7 +561,8 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
     context = rclpy.Context()
     rclpy.init(context=context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     from rclpy.executors import SingleThreadedExecutor
-    monitor = Monitor(context, lockstep=args.mode == 'lockstep', cli_args=own_ros_args(args))
+    monitor = Monitor(context, lockstep=args.mode == 'lockstep',
+                      arm_node='arm' in graph_nodes(args), cli_args=own_ros_args(args))
     watch = SingleThreadedExecutor(context=context)
     watch.add_node(monitor.node)
     recorder = None
@@ -684,7 +688,7 @@ def summary(monitor: Monitor, elapsed: float, reason: str, codes: dict, recorder
     if monitor.joints:
         age = time.monotonic() - monitor.joints_at
         stale = (f' (STALE: the arm said nothing for its last {age:.1f} s)'
-                 if not monitor.lockstep and age > ARM_STALE_S else '')
+                 if monitor.arm_node and age > ARM_STALE_S else '')
         lines.append('  final arm pose (deg): ' + ', '.join(
             f'{n} {d:.1f}' for n, d in monitor.joints.items()) + stale)
     if codes:
