@@ -29,10 +29,9 @@ class PDConfig:
 
     :param kp: lambda_p (1/1).
     :param kd: lambda_d (seconds). 0 by default, not the paper's 0.1: the action location
-        is the argmax of a 14 x 14 map, which jumps by whole cells, and the derivative turns
-        each jump into a kick (``bench screen``, mean AAE over the dev set: 19.1 deg with
-        kd 0 vs 20.2 with 0.1, static sequences 13.0 vs 17.6; the paper's gains are the
-        variant ``paper``).
+        is read from a 14 x 14 map, which jumps by whole cells, and the derivative turns
+        each jump into a kick (README, Measured defaults; the paper's gains are the variant
+        ``paper``).
     :param dead_band: while both error components are smaller than this (radians) the
         camera is on target: no new motion (see ``within_dead_band``). It gates the output
         instead of zeroing the error, so the derivative never sees a jump at its edge.

@@ -36,8 +36,7 @@ class ControllerConfig:
         camera's own motion makes the whole view unpredictable, most of all where new
         content enters at the border it moves towards, so a moving camera's map points
         further along its own motion. Still needed with the encoder's mirrored border
-        (`encoder_pad`): `bench screen --camera static`, seeds 0-2, mean AAE 10.25 deg with
-        0.3 s, 13.38 without.
+        (`encoder_pad`; README, Measured defaults).
     :param pan_limit_deg: the controller never aims the camera farther than this from the
         home direction, left or right (the workspace, e.g. a screen's extent); the joint
         limits still apply.

@@ -91,7 +91,8 @@ class SimNode(Node):
         self.scene = open_scene(p['scene'], image_topic=p['image_topic'],
                                 folder_fps=p['folder_fps'])
         self.fps = self.scene.fps or DEFAULT_SCENE_FPS
-        self.world = ScreenWorld((), fps=self.fps, screen=screen, home_deg=p['home_deg'],
+        self.world = ScreenWorld((), fps=self.fps, screen=screen,
+                                 home_deg=screen.mapping.home_deg,
                                  step_delay_ms=p['step_delay_ms'])
         self.index = 0                    # the next scene frame (a loop goes on counting)
         self.lockstep = None
