@@ -19,7 +19,7 @@ from collections import Counter
 from dataclasses import dataclass
 import math
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import cv2
 import numpy as np
@@ -337,6 +337,54 @@ def open_source(spec: str, *, clock, image_topic: str = '', folder_fps: float = 
     raise SourceError(f'unknown camera source {spec!r}: use bag:PATH, video:PATH, '
                       'folder:PATH, device:N or realsense (a scene on the virtual screen is '
                       "the sim node's)")
+
+
+class Playback:
+    """A recorded source as a node plays it: the next frame, from the start again at the
+    end with ``loop``; each reason frames were skipped for, reported once; and how the
+    stream ended (the source's error, every frame skipped, or its end).
+
+    :param spec: the source as the user named it, for messages.
+    :param warn: called with each message about a new problem.
+    """
+
+    def __init__(self, source: Source, spec: str, *, warn: Callable[[str], None]):
+        self.source, self.spec, self.warn = source, spec, warn
+        self.failure: str | None = None    # why the stream ended in error
+        self._reported: set[str] = set()
+
+    def read(self, *, loop: bool = False) -> Frame | None:
+        """The next frame; None at the end or on an error (then ``failure`` says why)."""
+        try:
+            frame = self.source.read()
+            if frame is None and loop:
+                self.source.rewind()
+                frame = self.source.read()
+        except SourceError as exc:
+            self.failure = str(exc)
+            return None
+        self.report(self.source.skipped, 'skipping frames')
+        return frame
+
+    def report(self, problems, what: str) -> None:
+        """Warn once about each of ``problems`` (e.g. a Counter's keys) not reported yet."""
+        for problem in sorted(set(problems) - self._reported):
+            self.warn(f'{what}: {problem}')
+            self._reported.add(problem)
+
+    def ended(self, published: int) -> str | None:
+        """At the end of the stream, after ``published`` frames: the failure, if any."""
+        skipped = self.source.skipped
+        if self.failure is None and published == 0 and skipped:
+            self.failure = (f'{self.spec}: no frame could be published, all '
+                            f'{sum(skipped.values())} were skipped: '
+                            + '; '.join(f'{problem} ({n})' for problem, n in skipped.items()))
+        return self.failure
+
+    def summary(self, why: str, published: int) -> str:
+        skipped = sum(self.source.skipped.values())
+        return (f'{why}: {published} frames published'
+                + (f', {skipped} skipped' if skipped else ''))
 
 
 class Pacer:

@@ -15,11 +15,10 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
-from activeloc_ros.errors import SourceError
 from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.nodes.messages import camera_info, time_from_s
 from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
-from activeloc_ros.sources import default_bag, open_source, Pacer, pinhole_matrix
+from activeloc_ros.sources import default_bag, open_source, Pacer, pinhole_matrix, Playback
 
 # Parameters without read_only take effect at once: the next frame uses them.
 PARAMS = [
@@ -66,9 +65,9 @@ class CameraNode(Node):
         self.image_pub = self.create_publisher(Image, 'camera/image_raw', reliable)
         self.info_pub = self.create_publisher(CameraInfo, 'camera/camera_info', 10)
         self.pacer = Pacer(p['rate'])
+        self.playback = Playback(self.source, p['source'], warn=self.get_logger().warning)
         self.pending = None
         self.published = 0
-        self.logged_problems = set()
         self.finished = False
         self.failure: str | None = None   # why the stream ended in error (run() exits 1)
         self.started_at = time.monotonic()
@@ -104,7 +103,7 @@ class CameraNode(Node):
         if self.finished or (self.waiting and not self._subscriber_ready()):
             return
         if self.pending is None:
-            self.pending = self._next_frame()
+            self.pending = self.playback.read(loop=self.params['loop'])
             if self.pending is None:
                 self._end_of_stream()
                 return
@@ -130,20 +129,6 @@ class CameraNode(Node):
         self.waiting = False
         return True
 
-    def _next_frame(self):
-        try:
-            frame = self.source.read()
-            if frame is None and self.params['loop']:
-                self.source.rewind()
-                frame = self.source.read()
-        except SourceError as exc:
-            self.failure = str(exc)
-            return None
-        for problem in set(self.source.skipped) - self.logged_problems:
-            self.get_logger().warning(f'skipping frames: {problem}')
-            self.logged_problems.add(problem)
-        return frame
-
     def publish(self, frame) -> None:
         height, width = frame.rgb.shape[:2]
         stamp = (self.get_clock().now().to_msg() if self.params['restamp']
@@ -161,25 +146,18 @@ class CameraNode(Node):
             self.get_logger().info(f'first frame published ({width}x{height})')
 
     def _end_of_stream(self) -> None:
-        skipped = self.source.skipped
-        if self.failure is None and self.published == 0 and skipped:
-            self.failure = (f'{self.params["source"]}: no frame could be published, all '
-                            f'{sum(skipped.values())} were skipped: '
-                            + '; '.join(f'{problem} ({n})' for problem, n in skipped.items()))
-        if self.failure is not None:
-            self.finished = True
-            self.timer.cancel()
-            self.get_logger().error(f'stream failed after {self.published} frames: '
-                                    f'{self.failure}')
+        self.failure = self.playback.ended(self.published)
+        if self.failure is None:
+            self._finish('end of stream')
             return
-        self._finish('end of stream')
+        self.finished = True
+        self.timer.cancel()
+        self.get_logger().error(f'stream failed after {self.published} frames: {self.failure}')
 
     def _finish(self, why: str) -> None:
         self.finished = True
         self.timer.cancel()
-        skipped = sum(self.source.skipped.values())
-        self.get_logger().info(f'{why}: {self.published} frames published'
-                               + (f', {skipped} skipped' if skipped else ''))
+        self.get_logger().info(self.playback.summary(why, self.published))
 
     def destroy_node(self):
         with self._source_lock:

@@ -27,7 +27,7 @@ from sensor_msgs.msg import CameraInfo, Image, JointState
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.data import FrameTruth
-from activeloc_ros.errors import ConfigError, SourceError
+from activeloc_ros.errors import ConfigError
 from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.nodes.lockstep import Lockstep, time_ns
 from activeloc_ros.nodes.messages import (
@@ -36,7 +36,7 @@ from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
 from activeloc_ros.nodes.settings import MAPPING_PARAMS, mapping_from, SCREEN_PARAMS, screen_from
 from activeloc_ros.screen import VirtualScreen
 from activeloc_ros.sources import (
-    default_bag, DEFAULT_SCENE_FPS, open_scene, Pacer, SCENE_HELP)
+    default_bag, DEFAULT_SCENE_FPS, open_scene, Pacer, Playback, SCENE_HELP)
 from activeloc_ros.world import ScreenWorld
 
 # Parameters without read_only take effect at once.
@@ -94,7 +94,7 @@ class SimNode(Node):
         self.world = ScreenWorld((), fps=self.fps, screen=screen,
                                  home_deg=screen.mapping.home_deg,
                                  step_delay_ms=p['step_delay_ms'])
-        self.index = 0                    # the next scene frame (a loop goes on counting)
+        self.index = 0                    # the next scene frame
         self.lockstep = None
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.image_pub = self.create_publisher(Image, 'camera/image_raw', reliable)
@@ -117,10 +117,10 @@ class SimNode(Node):
         else:
             self.create_timer(1.0 / p['state_rate'], self.publish_state, clock=steady)
         self.pacer = Pacer(p['rate'])
+        self.playback = Playback(self.scene, p['scene'], warn=self.get_logger().warning)
         self.pending = None               # real time: the next scene frame, when it is due
         self.published = 0
         self.rejected = 0
-        self.logged_problems = set()
         self.finished = False
         self.failure: str | None = None   # why the stream ended in error (run() exits 1)
         self.started_at = time.monotonic()
@@ -218,9 +218,7 @@ class SimNode(Node):
             return
         if action != 'next':
             return
-        for problem in set(step.missed) - self.logged_problems:
-            self.get_logger().warning(f'lockstep: {problem} (frame {self.world.index})')
-            self.logged_problems.add(problem)
+        self.playback.report(step.missed, 'lockstep')
         if self.params['max_frames'] and self.published >= self.params['max_frames']:
             self._finish('max_frames reached')
             return
@@ -237,20 +235,10 @@ class SimNode(Node):
         step.begin(t_ns, now)
 
     def _next_scene(self):
-        try:
-            frame = self.scene.read()
-            if frame is None and self.params['loop']:
-                self.scene.rewind()
-                frame = self.scene.read()
-        except SourceError as exc:
-            self.failure = str(exc)
-            return None
-        for problem in set(self.scene.skipped) - self.logged_problems:
-            self.get_logger().warning(f'skipping frames: {problem}')
-            self.logged_problems.add(problem)
+        frame = self.playback.read(loop=self.params['loop'])
         if frame is None:
             return None
-        self.index += 1
+        self.index += 1                   # a loop goes on counting: time goes on
         return self.index - 1, frame.rgb
 
     def publish(self, stamp) -> None:
@@ -293,25 +281,18 @@ class SimNode(Node):
         return True
 
     def _end_of_stream(self) -> None:
-        skipped = self.scene.skipped
-        if self.failure is None and self.published == 0 and skipped:
-            self.failure = (f'{self.params["scene"]}: no frame could be shown, all '
-                            f'{sum(skipped.values())} were skipped: '
-                            + '; '.join(f'{problem} ({n})' for problem, n in skipped.items()))
-        if self.failure is not None:
-            self.finished = True
-            self.timer.cancel()
-            self.get_logger().error(f'scene failed after {self.published} frames: '
-                                    f'{self.failure}')
+        self.failure = self.playback.ended(self.published)
+        if self.failure is None:
+            self._finish('end of scene')
             return
-        self._finish('end of scene')
+        self.finished = True
+        self.timer.cancel()
+        self.get_logger().error(f'scene failed after {self.published} frames: {self.failure}')
 
     def _finish(self, why: str) -> None:
         self.finished = True
         self.timer.cancel()
-        skipped = sum(self.scene.skipped.values())
-        self.get_logger().info(f'{why}: {self.published} frames published'
-                               + (f', {skipped} skipped' if skipped else ''))
+        self.get_logger().info(self.playback.summary(why, self.published))
         if self.lockstep is not None and self.lockstep.missed:
             self.get_logger().warning('lockstep timeouts: ' + ', '.join(
                 f'{kind}: {n}' for kind, n in sorted(self.lockstep.missed.items())))
