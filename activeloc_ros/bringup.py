@@ -111,9 +111,8 @@ def parse_args(argv):
     parser.add_argument('--mode', choices=MODES, default='realtime',
                         help="'realtime': every node on the wall clock, perception takes the "
                              "newest frame; 'lockstep': simulated time stepped frame by frame "
-                             'by the sim node (virtual camera), every frame processed, as '
-                             'the screen '
-                             'benchmark does (default: realtime)')
+                             'by the sim node (virtual camera), every frame processed, as the '
+                             'screen benchmark does (default: realtime)')
     parser.add_argument('--arm', default='sim',
                         help="arm back end: 'sim' or 'serial:PORT' (default: sim; a "
                              "virtual camera's arm is always the sim node's)")

@@ -37,7 +37,7 @@ from activeloc_ros.nodes.settings import MAPPING_PARAMS, mapping_from, SCREEN_PA
 from activeloc_ros.screen import VirtualScreen
 from activeloc_ros.sources import (
     default_bag, DEFAULT_SCENE_FPS, open_scene, Pacer, Playback, SCENE_HELP)
-from activeloc_ros.world import ScreenWorld
+from activeloc_ros.world import frame_time, ScreenWorld
 
 # Parameters without read_only take effect at once.
 PARAMS = [
@@ -169,7 +169,7 @@ class SimNode(Node):
             self.lockstep.on_location(stamp_ns(msg.header.stamp), time.monotonic())
 
     def on_state(self, msg: JointState) -> None:
-        """Lockstep: our own arm state back, so it reached the controller too."""
+        """Lockstep: our own arm state back, so it is on its way to the controller too."""
         with self._lock:
             self.lockstep.on_state(stamp_ns(msg.header.stamp))
 
@@ -202,7 +202,7 @@ class SimNode(Node):
                 self._end_of_stream()
                 return
         index, rgb = self.pending
-        if time.monotonic() < self.pacer.due(index / self.fps, time.monotonic()):
+        if time.monotonic() < self.pacer.due(frame_time(index, self.fps), time.monotonic()):
             return
         self.pending = None
         self.world.show(index, rgb, FrameTruth(index, None, ()), self._now())
