@@ -183,6 +183,25 @@ def test_one_step_turns_by_the_error_within_the_speed_limit():
     assert cmd.joints_deg[0] == pytest.approx(HOME_DEG[0] + 1.0)
 
 
+def test_a_move_cut_short_by_the_speed_limit_is_finished_without_new_targets():
+    """The rest of a cut-short move comes with the locations it ignores (a moving
+    camera's frames), until it is done."""
+    ctl = make_controller(settle_time=0.3)
+    ctl.observe_joints(HOME_DEG, 0.0)
+    cmd = ctl.on_location(pixel_for(10.0), D435.cy, 0.0, 0.02)
+    assert cmd.joints_deg[0] == pytest.approx(HOME_DEG[0] + 1.0)
+    ctl.observe_joints([HOME_DEG[0] + 1.0] + list(HOME_DEG[1:]), 0.1)
+    more = ctl.on_location(pixel_for(0.0), D435.cy, 0.1, 0.1)        # the camera moved
+    assert ctl.ignored == {'camera moving': 1}
+    assert more.reason == 'continue' and more.stamp is None
+    assert more.joints_deg[0] == pytest.approx(HOME_DEG[0] + 5.0)
+    assert ctl.tick(0.15) is None                 # the watchdog's timer does not move it
+    ctl.observe_joints([HOME_DEG[0] + 5.0] + list(HOME_DEG[1:]), 0.2)
+    last = ctl.on_location(pixel_for(0.0), D435.cy, 0.3, 0.3)
+    assert last.reason == 'continue' and last.joints_deg[0] == pytest.approx(HOME_DEG[0] + 10.0)
+    assert ctl.on_location(pixel_for(0.0), D435.cy, 0.4, 0.4) is None   # done: silence
+
+
 def test_pose_at_capture_time_is_used_not_the_latest():
     """A frame captured before the arm turned asks for the turn once, not twice."""
     ctl = make_controller()
@@ -260,11 +279,13 @@ def test_ignored_locations_run_the_watchdog_as_silence_does():
     answer to one is the hold, once, in every driver (the benchmark has no timer)."""
     ctl = make_controller(watchdog_timeout=0.5, min_peak=0.01)
     assert ctl.on_location(pixel_for(20.0), D435.cy, 0.0, 0.0, peak=0.2) is not None
-    assert ctl.on_location(pixel_for(5.0), D435.cy, 0.4, 0.4, peak=0.005) is None
+    rest = ctl.on_location(pixel_for(5.0), D435.cy, 0.4, 0.4, peak=0.005)
+    assert rest.reason == 'continue'      # the first move's rest, not a move to this one
+    assert ctl.on_location(pixel_for(5.0), D435.cy, 0.5, 0.5, peak=0.005) is None
     hold = ctl.on_location(pixel_for(5.0), D435.cy, 0.6, 0.6, peak=0.005)
     assert hold is not None and hold.reason == 'hold' and ctl.state == 'holding'
     assert ctl.on_location(pixel_for(5.0), D435.cy, 0.7, 0.7, peak=0.005) is None
-    assert ctl.ignored == {'weak or bad peak': 3}
+    assert ctl.ignored == {'weak or bad peak': 4}
 
 
 def test_after_a_hold_tracking_restarts_without_a_derivative_kick():
@@ -331,7 +352,8 @@ def test_settle_time_ignores_frames_seen_by_a_moving_camera():
     ctl.observe_joints(moved, 0.5)          # a move between 0.4 and 0.5 s
     for k in range(6, 9):
         ctl.observe_joints(moved, k * 0.1)
-    assert ctl.on_location(pixel_for(10.0), D435.cy, 0.7, 0.7) is None
+    rest = ctl.on_location(pixel_for(10.0), D435.cy, 0.7, 0.7)   # ignored: no new target
+    assert rest.reason == 'continue' and rest.stamp is None   # the first move's rest
     assert ctl.ignored == {'camera moving': 1}
     ctl.observe_joints(moved, 0.9)
     assert ctl.on_location(pixel_for(10.0), D435.cy, 0.9, 0.9) is not None  # 0.4 s still

@@ -159,6 +159,13 @@ class ReactiveController:
 
     States: ``'waiting'`` (no intrinsics yet), ``'idle'`` (no location yet), ``'tracking'``
     and ``'holding'`` (the watchdog fired: the arm was told to stay where it is).
+
+    A move the servos' speed cut short (`JointGuard`: a command moves a joint at most as far
+    as the servos go in the time since the previous command) goes on with every location
+    it ignores (a moving camera's frames above all; reason ``'continue'``) until it is
+    done or a new target replaces it. Without this a saccade stopped after one frame's
+    worth of motion and waited out the settle gate before it went on (the first command
+    of a run moves nothing at all).
     """
 
     def __init__(self, config: ControllerConfig, *, start_deg: Sequence[float] | None = None,
@@ -177,6 +184,7 @@ class ReactiveController:
         self._last_capture = -math.inf
         self._last_accept = -math.inf
         self._holding = False
+        self._goal: tuple[float, ...] | None = None   # a target the guard cut short
 
     @property
     def state(self) -> str:
@@ -200,9 +208,14 @@ class ReactiveController:
             self.guard.reset(pose, t)
 
     def _ignore(self, reason: str, t_now: float) -> Command | None:
-        """Count an ignored location; the watchdog's answer to it."""
+        """Count an ignored location; the watchdog's answer to it, else the rest of a move
+        the servos' speed cut short."""
         self.ignored[reason] = self.ignored.get(reason, 0) + 1
-        return self.tick(t_now)
+        command = self.tick(t_now)
+        if (command is None and self._goal is not None and not self._holding
+                and math.isfinite(t_now)):
+            command = self._emit(self._goal, t_now, 'continue', None)
+        return command
 
     def _pose_at(self, t: float) -> tuple[float, ...]:
         pose = self.history.at(t, self.config.pose_slack)
@@ -281,6 +294,8 @@ class ReactiveController:
     def _emit(self, target: Sequence[float], t_now: float, reason: str,
               stamp: float | None) -> Command:
         joints = self.guard.limit(target, t_now)
+        short = max(abs(a - b) for a, b in zip(target, joints)) > 0.05
+        self._goal = tuple(target) if short and reason in ('track', 'continue') else None
         self.commands += 1
         if stamp is not None:
             self.latency.add(t_now - stamp)

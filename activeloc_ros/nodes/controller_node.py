@@ -228,9 +228,9 @@ class ControllerNode(Node):
             now = max(now, t_capture)
         command = self.core.on_location(msg.point.x, msg.point.y, t_capture, now,
                                         peak=msg.point.z)
-        if command is not None:        # its own, or the watchdog's hold
+        if command is not None:        # its own, the watchdog's hold or a move's rest
             self._publish(command.joints_deg, msg.header.stamp)
-        if command is None or command.reason == 'hold':
+        if command is None or command.reason != 'track':
             self.ignored_pub.publish(msg)
 
     def on_watchdog(self) -> None:

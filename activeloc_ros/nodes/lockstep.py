@@ -15,7 +15,8 @@ sim node owns (``use_sim_time`` on every node, ``lockstep`` on the sim). Frame i
    the arm's state at the location's stamp: DDS may deliver the two in either order.
 3. answer: perception publishes ``action_location`` stamped t_i; the controller, whose
    clock reads t_i, turns it into ``joint_commands`` stamped t_i, or says it ignored it on
-   ``action_location/ignored`` (closed_loop then sends no command either).
+   ``action_location/ignored`` (with a command too when it carries on a move the servos'
+   speed cut short, as closed_loop's controller does).
 4. the sim applies each command when it comes, at the arm's time t_i; once the frame is
    answered, frame i + 1 begins.
 
