@@ -15,7 +15,10 @@ Two modes:
   simulated clock.
 - ``realtime``: processing a frame takes the pointer's measured wall time; frames that
   arrive while it is busy wait in a one-deep queue where the newest wins (the perception
-  node's image queue), and each command reaches the arm when its computation ends.
+  node's image queue). Each command reaches the arm when its location was ready: the end
+  of the computation, or earlier for a pointer that hands its location over before it has
+  finished (`Pointing.ready_s`: the model's map comes before its optimiser step, as the
+  perception node publishes it).
 
 Scoring, at every scene frame with an annotated actor: the angle between the optical axis
 and the ray to the closest actor's centre (AAE), whether any actor's centre is in view, and
@@ -52,6 +55,7 @@ class Pointing:
     location: tuple[float, float] | None
     heat: np.ndarray | None = None     # (rows, cols) over the camera image
     peak: float | None = None
+    ready_s: float | None = None       # s into `locate` the answer was ready (None: at its end)
 
 
 class Pointer(Protocol):
@@ -164,11 +168,13 @@ def run_episode(world: ScreenWorld, pointer: Pointer, *, controller: ControllerC
     recorded: dict[int, FrameRecord] = {}
 
     def process(view: View, start: float) -> float:
+        """Process a frame from ``start``; returns when the pointer is free again."""
         t0 = time.perf_counter()
         pointing = pointer.locate(view)
         spent = time.perf_counter() - t0
         episode.compute_s.append(spent)
-        done = start if mode == 'lockstep' else start + spent
+        ready = spent if pointing.ready_s is None else min(pointing.ready_s, spent)
+        done, free = (start, start) if mode == 'lockstep' else (start + ready, start + spent)
         heat = pointing.heat if pointing.heat is not None else gaze_map(
             pointing.location, world.screen.size)
         xy = None
@@ -187,7 +193,7 @@ def run_episode(world: ScreenWorld, pointer: Pointer, *, controller: ControllerC
             pending.append((done, cmd.joints_deg))
             episode.commands += 1
         results.append((done, heat, view.pan, view.tilt, xy))
-        return done
+        return free
 
     for t in world.times():
         # the perception finishes the queued frame, and may start it, before t

@@ -145,12 +145,21 @@ class FakeModel:
         self.encoder = encoder or object()
         FakeModel.built += 1
 
-    def step(self, frame: np.ndarray):
+    def observe(self, frame: np.ndarray) -> np.ndarray:
+        return frame
+
+    def learn(self, frame: np.ndarray, *, on_map=None):
         grey = frame.mean(axis=2).astype(np.float32)
         heat = cv2.resize(grey, (14, 14), interpolation=cv2.INTER_AREA)
         heat = heat / heat.sum()
-        return types.SimpleNamespace(surprise_map=heat, peak=float(heat.max()),
-                                     location_px=(0.0, 0.0))
+        result = types.SimpleNamespace(surprise_map=heat, peak=float(heat.max()),
+                                       location_px=(0.0, 0.0))
+        if on_map is not None:
+            on_map(result)
+        return result
+
+    def step(self, frame: np.ndarray):
+        return self.learn(self.observe(frame))
 
     def reset(self) -> None:
         pass

@@ -200,6 +200,25 @@ def test_realtime_drops_frames_a_slow_pointer_cannot_take(tmp_path):
     assert real.summary()['aae_deg'] > lock.summary()['aae_deg']
 
 
+class EarlyOracle(SlowOracle):
+    """The slow oracle, with its answer ready at once (as the model's map is before its
+    optimiser step)."""
+
+    def locate(self, view) -> Pointing:
+        answer = super().locate(view)
+        answer.ready_s = 0.0
+        return answer
+
+
+def test_realtime_commands_leave_when_the_answer_is_ready_not_when_the_pointer_is_done(
+        tmp_path):
+    seq = data.load_sequence(make_walker(tmp_path, fps=20.0))
+    late = episode(seq, SlowOracle(0.12), mode='realtime').summary()
+    early = episode(seq, EarlyOracle(0.12), mode='realtime').summary()
+    assert early['processed'] == late['processed']        # busy just as long
+    assert early['aae_deg'] < late['aae_deg']              # but it steers sooner
+
+
 def test_realtime_scores_the_pointing_of_frames_taken_from_the_queue_too(tmp_path):
     seq = data.load_sequence(make_walker(tmp_path, fps=20.0))
     run = episode(seq, SlowOracle(0.12), mode='realtime')

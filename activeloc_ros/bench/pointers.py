@@ -3,6 +3,8 @@
 Each is a ``closed_loop.Pointer``; the trackers are in ``bench.trackers``. All of them
 drive the same controller and arm.
 """
+import time
+
 import cv2
 import numpy as np
 
@@ -46,8 +48,14 @@ class ModelPointer:
         self._fresh = False
 
     def locate(self, view: View) -> Pointing:
-        result = self.model.step(view.rgb)
-        return Pointing(result.location_px, result.surprise_map, result.peak)
+        """The model's step; its location is ready when its map is, before the optimiser
+        step, as the perception node publishes it."""
+        t0 = time.perf_counter()
+        ready: list[float] = []
+        result = self.model.learn(self.model.observe(view.rgb),
+                                  on_map=lambda _: ready.append(time.perf_counter() - t0))
+        return Pointing(result.location_px, result.surprise_map, result.peak,
+                        ready_s=ready[0] if ready else None)
 
 
 class TrackerMethod:
