@@ -145,10 +145,7 @@ class FakeModel:
         self.encoder = encoder or object()
         FakeModel.built += 1
 
-    def observe(self, frame: np.ndarray) -> np.ndarray:
-        return frame
-
-    def learn(self, frame: np.ndarray, *, on_map=None):
+    def step(self, frame: np.ndarray, *, on_map=None):
         grey = frame.mean(axis=2).astype(np.float32)
         heat = cv2.resize(grey, (14, 14), interpolation=cv2.INTER_AREA)
         heat = heat / heat.sum()
@@ -157,9 +154,6 @@ class FakeModel:
         if on_map is not None:
             on_map(result)
         return result
-
-    def step(self, frame: np.ndarray):
-        return self.learn(self.observe(frame))
 
     def reset(self) -> None:
         pass

@@ -52,8 +52,8 @@ class ModelPointer:
         step, as the perception node publishes it."""
         t0 = time.perf_counter()
         ready: list[float] = []
-        result = self.model.learn(self.model.observe(view.rgb),
-                                  on_map=lambda _: ready.append(time.perf_counter() - t0))
+        result = self.model.step(view.rgb,
+                                 on_map=lambda _: ready.append(time.perf_counter() - t0))
         return Pointing(result.location_px, result.surprise_map, result.peak,
                         ready_s=ready[0] if ready else None)
 

@@ -193,7 +193,7 @@ class PerceptionNode(Node):
         started = time.monotonic()
         if self.pipeline is None:  # the map goes out before the optimiser step
             tag = (header, rgb, started)
-            self.model.learn(self.model.observe(rgb), on_map=lambda r: self.publish(r, tag))
+            self.model.step(rgb, on_map=lambda r: self.publish(r, tag))
         else:                      # published from the learning thread
             self.pipeline.submit(rgb, tag=(header, rgb, started))
 

@@ -234,9 +234,12 @@ class SurpriseModel:
                 return feats[0], feats[1]
             return None, self.features.of(x, learning=True)[0]
 
-    def step(self, frame: np.ndarray) -> PerceptionResult:
-        """Encode a frame, score the prediction made for it, update online, predict on."""
-        return self.learn(self.observe(frame))
+    def step(self, frame: np.ndarray, *,
+             on_map: Callable[[PerceptionResult], None] | None = None) -> PerceptionResult:
+        """Encode a frame, score the prediction made for it, update online, predict on
+        (`observe`, then `learn`, which hands the map to ``on_map`` before its optimiser
+        step)."""
+        return self.learn(self.observe(frame), on_map=on_map)
 
     def observe(self, frame: np.ndarray) -> Observation:
         """The first half of `step`: the frame's encoder input, its features and the
