@@ -1,9 +1,12 @@
 """The closed loop without ROS, in simulated time: `run_episode` steps a world
-(`world.ScreenWorld`, the projected-screen experiment) with a pointer and the controller.
+(`world.ScreenWorld`, the projected-screen experiment, or `tracking.world.TrackingWorld`,
+active tracking) with a pointer and the world's controller.
 
 world's camera image -> a pointer (the perception model, a tracker, a baseline) ->
-``ReactiveController`` -> the world's arm -> the next image. The same core objects the ROS
-nodes run.
+``ReactiveController`` (``BaseController`` for the tracking world's base) -> the world's arm
+-> the next image. The same core objects the ROS nodes run. What follows describes the
+screen world; the tracking world steps at its control rate and scores AD-VAT's reward
+(`tracking.world`).
 
 Time: scene frame i is shown at ``t_i = i / fps`` (`world.frame_time`, the scene's own
 rate) and the arm moves at its servos' speed. The camera captures at ``camera_fps``
@@ -37,7 +40,7 @@ from typing import Callable, Iterable, Protocol
 import numpy as np
 
 from activeloc_ros import metrics
-from activeloc_ros.control import ControllerConfig, ReactiveController
+from activeloc_ros.control import ControllerConfig
 from activeloc_ros.data import FrameTruth
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.screen import VirtualScreen
@@ -56,6 +59,7 @@ class Pointing:
     heat: np.ndarray | None = None     # (rows, cols) over the camera image
     peak: float | None = None
     ready_s: float | None = None       # s into `locate` the answer was ready (None: at its end)
+    box: tuple | None = None           # x, y, w, h (px) of what is at the location, if known
 
 
 class Pointer(Protocol):
@@ -82,6 +86,11 @@ class FrameRecord:
     pointing_deg: float = math.nan                   # processed frames with a location
     truth_xy: tuple[float, float] | None = None      # closest actor centre, scene px
     predicted_xy: tuple[float, float] | None = None  # newest location, scene px
+    # the tracking world's: AD-VAT's reward, and where the base and the target are (m)
+    reward: float = math.nan
+    reward_relaxed: float = math.nan
+    base_xy: tuple[float, float] | None = None
+    target_xy: tuple[float, float] | None = None
 
 
 @dataclass
@@ -139,24 +148,26 @@ def screen_world(frames: Iterable[tuple[int, np.ndarray, FrameTruth]], *, fps: f
                        step_delay_ms=controller.step_delay_ms, camera_fps=camera_fps)
 
 
-def run_episode(world: ScreenWorld, pointer: Pointer, *, controller: ControllerConfig,
+def run_episode(world, pointer: Pointer, *, controller,
                 mode: str = 'lockstep', name: str = '',
-                on_frame: Callable[[np.ndarray, FrameRecord, np.ndarray | None], None]
+                on_frame: Callable[[np.ndarray | None, FrameRecord, np.ndarray | None], None]
                 | None = None) -> Episode:
     """Step a world through the closed loop until its frames end.
 
-    :param world: the world, fresh, its arm at the controller's home pose (`screen_world`).
-    :param on_frame: called with each scene frame, its record and the camera image (None
-        when the camera captured nothing at that frame), e.g. to write a video.
+    :param world: the world, fresh: a `ScreenWorld` its arm at the controller's home pose
+        (`screen_world`), or a `tracking.world.TrackingWorld`.
+    :param controller: the config of the world's controller (`world.controller` builds it):
+        `ControllerConfig` for the arm, `control.base.BaseConfig` for the base.
+    :param on_frame: called with each scene frame (None in the tracking world), its record
+        and the camera image (None when the camera captured nothing at that frame), e.g. to
+        write a video.
     """
     if mode not in MODES:
         raise ConfigError(f'mode must be one of {list(MODES)}, got {mode!r}')
-    home = controller.mapping.home_deg
     episode = Episode(name, pointer.name, mode)
     pointer.reset(name)
-    ctl = ReactiveController(controller, start_deg=home, t0=0.0)
-    ctl.set_intrinsics(world.intrinsics)
-    pending: list[tuple[float, tuple[float, ...]]] = []   # (time it reaches the arm, joints)
+    ctl = world.controller(controller)
+    pending: list[tuple[float, object]] = []   # (time it reaches the actuator, command)
     queued: View | None = None
     busy_until = -math.inf
     newest_map: tuple[np.ndarray, float, float] | None = None   # (heat, pan, tilt)
@@ -176,7 +187,7 @@ def run_episode(world: ScreenWorld, pointer: Pointer, *, controller: ControllerC
         ready = spent if pointing.ready_s is None else min(pointing.ready_s, spent)
         done, free = (start, start) if mode == 'lockstep' else (start + ready, start + spent)
         heat = pointing.heat if pointing.heat is not None else gaze_map(
-            pointing.location, world.screen.size)
+            pointing.location, (view.rgb.shape[1], view.rgb.shape[0]))
         xy = None
         if pointing.location is not None:
             u, v = pointing.location
@@ -186,11 +197,11 @@ def run_episode(world: ScreenWorld, pointer: Pointer, *, controller: ControllerC
                 pointing_deg[view.index] = metrics.closest_angle(
                     metrics.pixel_ray((u, v), **camera), actors)
             xy = world.to_scene(view, (u, v))
-            cmd = ctl.on_location(u, v, view.t, done, peak=pointing.peak)
+            cmd = ctl.on_location(u, v, view.t, done, peak=pointing.peak, box=pointing.box)
         else:
             cmd = ctl.tick(done)
         if cmd is not None:
-            pending.append((done, cmd.joints_deg))
+            pending.append((done, cmd))
             episode.commands += 1
         results.append((done, heat, view.pan, view.tilt, xy))
         return free
@@ -200,10 +211,10 @@ def run_episode(world: ScreenWorld, pointer: Pointer, *, controller: ControllerC
         if queued is not None and busy_until <= t:
             view, queued = queued, None
             busy_until = process(view, max(busy_until, view.t))
-        for when, joints in sorted(p for p in pending if p[0] <= t):
-            world.act(joints, when)
+        for when, cmd in sorted((p for p in pending if p[0] <= t), key=lambda p: p[0]):
+            world.apply(cmd, when)
         pending[:] = [p for p in pending if p[0] > t]
-        ctl.observe_joints(world.advance(t), t)
+        ctl.observe(world.advance(t), t)
         processed = False
         view = world.observe()                 # a dropped frame may still wait in the queue
         if view is not None and (mode == 'lockstep' or busy_until <= t):

@@ -104,6 +104,22 @@ def peak_point(heatmap: np.ndarray, image_wh: tuple[float, float]) -> tuple[floa
     return cell_centre(peak_cell(m), m.shape, image_wh)
 
 
+def blob_box(heatmap: np.ndarray, image_wh: tuple[float, float], *,
+             share: float = 0.5) -> tuple[float, float, float, float] | None:
+    """The box (x, y, w, h; px) of the map's blob: the cells connected to its peak cell
+    that reach ``share`` of the peak. None for a map with no positive peak."""
+    m = np.asarray(heatmap, np.float64)
+    peak = float(m.max()) if m.size else 0.0
+    if not (math.isfinite(peak) and peak > 0):
+        return None
+    import cv2
+    _, labels = cv2.connectedComponents((m >= share * peak).astype(np.uint8), connectivity=4)
+    rows, cols = np.nonzero(labels == labels[peak_cell(m)])
+    cw, ch = cell_size(m.shape, image_wh)
+    x, y = cols.min() * cw, rows.min() * ch
+    return (x, y, (cols.max() + 1) * cw - x, (rows.max() + 1) * ch - y)
+
+
 def fixation_map(points_xy: Iterable[tuple[float, float]], grid_shape: tuple[int, int],
                  image_wh: tuple[float, float]) -> np.ndarray:
     """Boolean grid with the cells holding the points set."""

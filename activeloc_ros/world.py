@@ -1,12 +1,14 @@
 """The simulated world a closed loop steps, without ROS: its clock, what its camera sees and
-what its actuator does. `closed_loop.run_episode` steps a world with any pointer.
+what its actuator does. `closed_loop.run_episode` steps a world with any pointer; the
+tracking experiment's `tracking.world.TrackingWorld` has the same interface.
 
 `ScreenWorld` is the projected-screen experiment (paper Table 2): a sequence's scene frames
 on the virtual screen (`screen.VirtualScreen`), seen by a camera the simulated Braccio
 (`control.SimArm`) aims. One step is one scene frame:
 
+    ctl = world.controller(config)   # the controller its actuator takes commands from
     for t in world.times():          # scene frame i is shown at t_i = i / fps
-        world.act(joints, when)      # commands that reach the arm by t
+        world.apply(command, when)   # commands that reach the arm by t
         joints = world.advance(t)    # the arm moves to t
         view = world.observe()       # a camera capture, when one is due
         world.score(record, ...)     # the frame's scores
@@ -18,7 +20,7 @@ from typing import Iterable, Iterator, Sequence
 import numpy as np
 
 from activeloc_ros import metrics
-from activeloc_ros.control import SimArm
+from activeloc_ros.control import Command, ControllerConfig, ReactiveController, SimArm
 from activeloc_ros.data import FrameTruth
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.screen import VirtualScreen
@@ -35,6 +37,7 @@ class View:
     truth_px: np.ndarray               # (N, 2) camera pixels of the annotated actors
     primary_px: np.ndarray | None      # (2,) camera pixel of the primary actor, if annotated
     centre_px: np.ndarray              # (2,) camera pixel of the screen centre
+    truth_box: tuple[int, int, int, int] | None = None   # x, y, w, h of the target, if known
 
 
 def frame_time(index: int, fps: float) -> float:
@@ -93,8 +96,18 @@ class ScreenWorld:
     def scene_wh(self) -> tuple[int, int]:
         return self.scene.shape[1], self.scene.shape[0]
 
+    def controller(self, config: ControllerConfig) -> ReactiveController:
+        """The controller this world's arm takes commands from, told its camera."""
+        ctl = ReactiveController(config, start_deg=config.mapping.home_deg, t0=0.0)
+        ctl.set_intrinsics(self.intrinsics)
+        return ctl
+
+    def apply(self, command: Command, t: float) -> None:
+        """A controller's command reaches the arm at ``t``."""
+        self.act(command.joints_deg, t)
+
     def act(self, joints_deg: Sequence[float], t: float) -> None:
-        """A command reaches the arm at ``t``."""
+        """A joint command reaches the arm at ``t``."""
         self.arm.command(joints_deg, t)
 
     def advance(self, t: float) -> tuple[int, ...]:

@@ -151,7 +151,7 @@ def test_controller_commands_stay_inside_limits_and_speed(events, variant, deriv
             now += args[0] if math.isfinite(args[0]) else 0.0
             cmd = ctl.tick(now)
         elif kind == 'joints':
-            ctl.observe_joints(args[0], now + (args[1] if math.isfinite(args[1]) else 0.0))
+            ctl.observe(args[0], now + (args[1] if math.isfinite(args[1]) else 0.0))
             cmd = None
         elif kind == 'camera':
             fx, cx, width = args

@@ -187,16 +187,16 @@ def test_a_move_cut_short_by_the_speed_limit_is_finished_without_new_targets():
     """The rest of a cut-short move comes with the locations it ignores (a moving
     camera's frames), until it is done."""
     ctl = make_controller(settle_time=0.3)
-    ctl.observe_joints(HOME_DEG, 0.0)
+    ctl.observe(HOME_DEG, 0.0)
     cmd = ctl.on_location(pixel_for(10.0), D435.cy, 0.0, 0.02)
     assert cmd.joints_deg[0] == pytest.approx(HOME_DEG[0] + 1.0)
-    ctl.observe_joints([HOME_DEG[0] + 1.0] + list(HOME_DEG[1:]), 0.1)
+    ctl.observe([HOME_DEG[0] + 1.0] + list(HOME_DEG[1:]), 0.1)
     more = ctl.on_location(pixel_for(0.0), D435.cy, 0.1, 0.1)        # the camera moved
     assert ctl.ignored == {'camera moving': 1}
     assert more.reason == 'continue' and more.stamp is None
     assert more.joints_deg[0] == pytest.approx(HOME_DEG[0] + 5.0)
     assert ctl.tick(0.15) is None                 # the watchdog's timer does not move it
-    ctl.observe_joints([HOME_DEG[0] + 5.0] + list(HOME_DEG[1:]), 0.2)
+    ctl.observe([HOME_DEG[0] + 5.0] + list(HOME_DEG[1:]), 0.2)
     last = ctl.on_location(pixel_for(0.0), D435.cy, 0.3, 0.3)
     assert last.reason == 'continue' and last.joints_deg[0] == pytest.approx(HOME_DEG[0] + 10.0)
     assert ctl.on_location(pixel_for(0.0), D435.cy, 0.4, 0.4) is None   # done: silence
@@ -206,8 +206,8 @@ def test_pose_at_capture_time_is_used_not_the_latest():
     """A frame captured before the arm turned asks for the turn once, not twice."""
     ctl = make_controller()
     home = list(HOME_DEG)
-    ctl.observe_joints(home, 0.0)
-    ctl.observe_joints([home[0] + 10.0] + home[1:], 1.0)
+    ctl.observe(home, 0.0)
+    ctl.observe([home[0] + 10.0] + home[1:], 1.0)
     cmd = ctl.on_location(pixel_for(10.0), D435.cy, 0.0, 1.5)  # captured at home
     assert cmd.joints_deg[0] == pytest.approx(HOME_DEG[0] + 10.0)
 
@@ -264,9 +264,9 @@ def test_dead_band_keeps_the_last_command():
 
 def test_watchdog_holds_once_then_stays_silent():
     ctl = make_controller(watchdog_timeout=0.5)
-    ctl.observe_joints(HOME_DEG, 0.0)
+    ctl.observe(HOME_DEG, 0.0)
     assert ctl.on_location(pixel_for(20.0), D435.cy, 0.0, 0.0) is not None
-    ctl.observe_joints([HOME_DEG[0] + 7] + list(HOME_DEG[1:]), 0.3)  # the arm on its way
+    ctl.observe([HOME_DEG[0] + 7] + list(HOME_DEG[1:]), 0.3)  # the arm on its way
     assert ctl.tick(0.4) is None and ctl.state == 'tracking'
     hold = ctl.tick(0.51)
     assert hold is not None and hold.reason == 'hold' and ctl.state == 'holding'
@@ -309,7 +309,7 @@ def test_closed_loop_step_response_on_the_servo_model():
     for k in range(60):
         t = k * 0.1
         here = arm.advance(t)
-        ctl.observe_joints(here, t)
+        ctl.observe(here, t)
         pan = here[0] - HOME_DEG[0]
         pans.append(pan)
         cmd = ctl.on_location(pixel_for(action - pan), D435.cy, t, t + 0.01)
@@ -347,13 +347,13 @@ def test_settle_time_ignores_frames_seen_by_a_moving_camera():
     still = list(HOME_DEG)
     moved = [HOME_DEG[0] + 5, *HOME_DEG[1:]]
     for k in range(5):                      # still from 0.0 to 0.4 s
-        ctl.observe_joints(still, k * 0.1)
+        ctl.observe(still, k * 0.1)
     assert ctl.on_location(pixel_for(10.0), D435.cy, 0.4, 0.4) is not None
-    ctl.observe_joints(moved, 0.5)          # a move between 0.4 and 0.5 s
+    ctl.observe(moved, 0.5)          # a move between 0.4 and 0.5 s
     for k in range(6, 9):
-        ctl.observe_joints(moved, k * 0.1)
+        ctl.observe(moved, k * 0.1)
     rest = ctl.on_location(pixel_for(10.0), D435.cy, 0.7, 0.7)   # ignored: no new target
     assert rest.reason == 'continue' and rest.stamp is None   # the first move's rest
     assert ctl.ignored == {'camera moving': 1}
-    ctl.observe_joints(moved, 0.9)
+    ctl.observe(moved, 0.9)
     assert ctl.on_location(pixel_for(10.0), D435.cy, 0.9, 0.9) is not None  # 0.4 s still

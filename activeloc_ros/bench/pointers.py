@@ -54,24 +54,36 @@ class ModelPointer:
         ready: list[float] = []
         result = self.model.step(view.rgb,
                                  on_map=lambda _: ready.append(time.perf_counter() - t0))
+        h, w = view.rgb.shape[:2]
         return Pointing(result.location_px, result.surprise_map, result.peak,
-                        ready_s=ready[0] if ready else None)
+                        ready_s=ready[0] if ready else None,
+                        box=metrics.blob_box(result.surprise_map, (w, h)))
 
 
 class TrackerMethod:
-    """An OpenCV tracker baseline (``bench.trackers``) started from an EdgeBoxes proposal
-    on the first camera frame, steering to its box centre."""
+    """An OpenCV tracker baseline (``bench.trackers``) started on the first camera frame,
+    steering to its box centre.
 
-    def __init__(self, kind: str):
+    :param start: ``'proposal'``: from the best EdgeBoxes proposal (the paper's screen
+        experiment); ``'truth'``: from the target's true box (the tracking standard, the
+        tracking experiment).
+    """
+
+    def __init__(self, kind: str, *, start: str = 'proposal'):
         from activeloc_ros.bench.trackers import TrackerPointer
+        if start not in ('proposal', 'truth'):
+            raise ConfigError(f"tracker start must be 'proposal' or 'truth', got {start!r}")
         self.tracker = TrackerPointer(kind)
         self.name = self.tracker.name
+        self.start = start
 
     def reset(self, sequence: str) -> None:
         self.tracker.reset()
 
     def locate(self, view: View) -> Pointing:
-        return Pointing(self.tracker.locate(view.rgb))
+        start = view.truth_box if self.start == 'truth' else None
+        location = self.tracker.locate(view.rgb, start=start)
+        return Pointing(location, box=self.tracker.box)
 
 
 class CentrePointer:
@@ -133,7 +145,7 @@ class OraclePointer:
             centre = np.array([(w - 1) / 2, (h - 1) / 2])
             target = finite[np.argmin(np.linalg.norm(finite - centre, axis=1))]
         return Pointing((float(np.clip(target[0], 0, w - 1)),
-                         float(np.clip(target[1], 0, h - 1))))
+                         float(np.clip(target[1], 0, h - 1))), box=view.truth_box)
 
 
 def _map_pointing(heat: np.ndarray | None, image_wh: tuple[int, int]) -> Pointing:

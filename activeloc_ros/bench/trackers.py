@@ -156,35 +156,40 @@ class TrackerPointer:
         """A new sequence: forget the tracker and its initial box."""
         self.tracker = None
         self.init_box = None
+        self.box: Box | None = None      # the newest box, None after a failure
 
-    def locate(self, rgb: np.ndarray) -> tuple[float, float] | None:
+    def locate(self, rgb: np.ndarray, *, start: Box | None = None
+               ) -> tuple[float, float] | None:
         """(u, v) pixel of the tracked box centre in this camera frame (RGB uint8, HxWx3),
-        or None when the tracker reports failure (or no proposal could initialise it)."""
+        or None when the tracker reports failure (or nothing could initialise it). The first
+        frame starts the tracker on ``start`` if given (the target's true box), else on the
+        best EdgeBoxes proposal."""
         _check_rgb(rgb)
         bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+        self.box = None
         if self.tracker is None:
-            return self._initialise(rgb, bgr)
+            if start is None:
+                proposals = propose_boxes(rgb, max_boxes=1)
+                start = proposals[0][0] if proposals else None
+            return None if start is None else self._initialise(bgr, start)
         try:
             ok, box = self.tracker.update(bgr)
         except cv2.error:
             return None
         if not ok:
             return None
+        self.box = tuple(int(round(v)) for v in box)
         x, y, w, h = box
         return x + w / 2.0, y + h / 2.0
 
-    def _initialise(self, rgb: np.ndarray, bgr: np.ndarray) -> tuple[float, float] | None:
-        proposals = propose_boxes(rgb, max_boxes=1)
-        if not proposals:
-            return None
-        box = proposals[0][0]
+    def _initialise(self, bgr: np.ndarray, box: Box) -> tuple[float, float] | None:
         tracker = create_tracker(self.name)
         try:
             # Legacy trackers return False on failure; the others return None or raise.
-            if tracker.init(bgr, box) is False:
+            if tracker.init(bgr, tuple(int(v) for v in box)) is False:
                 return None
         except cv2.error:
             return None
-        self.tracker, self.init_box = tracker, box
+        self.tracker, self.init_box, self.box = tracker, box, box
         x, y, w, h = box
         return x + w / 2.0, y + h / 2.0

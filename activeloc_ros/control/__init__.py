@@ -7,7 +7,7 @@ depends on time takes it as an argument. A loop in simulated time::
     ctl.set_intrinsics(Intrinsics.from_camera_info(k, width, height))
     arm = SimArm(HOME_DEG, 0.0, step_delay_ms=20)
     for t, (u, v) in frames:                      # action pixel seen at capture time t
-        ctl.observe_joints(arm.advance(t), t)     # where the camera was when it looked
+        ctl.observe(arm.advance(t), t)     # where the camera was when it looked
         cmd = ctl.on_location(u, v, t, t + latency) or ctl.tick(t + latency)
         if cmd:
             arm.command(cmd.joints_deg, cmd.t)

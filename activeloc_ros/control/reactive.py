@@ -197,7 +197,7 @@ class ReactiveController:
     def set_intrinsics(self, intrinsics: Intrinsics) -> None:
         self.intrinsics = intrinsics
 
-    def observe_joints(self, joints_deg: Sequence[float], t: float) -> None:
+    def observe(self, joints_deg: Sequence[float], t: float) -> None:
         """The arm's measured pose at ``t``; before the first command it also seeds the guard,
         so the first commands ramp from where the arm really is."""
         pose = tuple(joints_deg)
@@ -237,8 +237,9 @@ class ReactiveController:
         return self.guard.last_deg
 
     def on_location(self, u: float, v: float, t_capture: float, t_now: float, *,
-                    peak: float | None = None) -> Command | None:
-        """React to an action at pixel (u, v) of a frame captured at ``t_capture``.
+                    peak: float | None = None, box: tuple | None = None) -> Command | None:
+        """React to an action at pixel (u, v) of a frame captured at ``t_capture``. (``box``,
+        the extent of what is there, is the base controller's: an arm only aims.)
 
         Returns the command to send. A location can be ignored (no intrinsics, NaN/absurd
         values, out-of-order stamps, weak peak, a moving camera; the reason is counted in

@@ -196,7 +196,7 @@ class ControllerNode(Node):
                 f'{self._malformed_states} so far)', throttle_duration_sec=5.0)
             return
         t = stamp_s(msg.header.stamp) or self._now()
-        self.core.observe_joints(joints, t)
+        self.core.observe(joints, t)
         if self._early is not None and self._pose_known(self._early) and not self.stopped:
             early, self._early = self._early, None
             self._answer(early)
