@@ -31,6 +31,9 @@ setup(
         'matplotlib>=3.7',
         'pyserial==3.5',
         'av==17.1.0',      # H.264 videos (its wheels bundle FFmpeg with libx264)
+        # the tracking world: a 3D engine that renders on the CPU; its wheel ships the
+        # humanoid and the motion-capture clips (pybullet_data)
+        'pybullet==3.2.7',
         # the int8 encoder (encoder_precision: int8): OpenVINO runs it, NNCF quantises it once
         'openvino==2026.4.1',
         'nncf==3.4.0',

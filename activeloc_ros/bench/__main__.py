@@ -8,6 +8,8 @@ COMMANDS = {
                 'does the map peak fall on the actor (fixed camera)'),
     'screen': ('activeloc_ros.bench.screen',
                'projected-screen experiment, closed loop (paper Table 2)'),
+    'tracking': ('activeloc_ros.bench.tracking',
+                 'simulated active tracking, mobile base (paper Tables 1 and 3)'),
     'graph-check': ('activeloc_ros.bench.graph_check',
                     'does the ROS graph in lockstep move the camera as the benchmark does'),
 }

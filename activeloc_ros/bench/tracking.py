@@ -1,0 +1,547 @@
+"""Simulated active tracking (paper Sec. 4.1, Table 1; its ablations, Table 3).
+
+    python -m activeloc_ros.bench tracking --episodes 10 --out out/tracking
+
+Every method drives the same base controller (`control.base`) in the same seeded episodes of
+the pybullet world (`tracking.world`): a person walks ahead of a mobile base carrying a
+camera. Episode e of a scene is built from seed ``1000 * seed + e``, whatever the method.
+Scores per scene, means over the episodes (AD-VAT's, `tracking.reward`): recall (episode
+length / 500), precision (summed reward / 500), precision with the distance term relaxed,
+episode length, accumulated reward and success rate (the whole 500 steps); also the mean
+bearing error and the share of steps with the target in view.
+
+Methods: ours (the perception model turning toward its surprise peak), the Table 3 rows
+(model ablations and PD variants, on the room scene only), the trackers TLD / MIL / MOSSE /
+KCF / CSRT started on the target's true box in the first frame (the tracking standard) and
+steering to their box centre, random, and the oracle (the true box's centre). The paper's RL
+rows (AD-VAT+, SmartTarget-RL, RandomTarget-RL) were measured in Unreal and are not
+comparable; they are quoted in the table as such.
+
+Writes table1.md / table1.csv (methods x scenes), table3.md (the room scene's ablations),
+tracking.json, one plot per scene and an overlay video per run (by default the first episode
+of each scene and method): the camera view with the true box (green), the surprise map and
+the method's choice (red), beside a top-down map with both paths. All atomically.
+"""
+import argparse
+import csv
+import io
+import json
+import math
+import multiprocessing
+import os
+from pathlib import Path
+import signal
+import sys
+import time
+import traceback
+
+import cv2
+import numpy as np
+
+from activeloc_ros.bench import key_values, names
+from activeloc_ros.bench.screen import method_parts, MODEL_METHODS, TRACKER_METHODS
+from activeloc_ros.bench.video import H264Writer
+from activeloc_ros.closed_loop import FrameRecord, MODES, Pointing, run_episode
+from activeloc_ros.control.base import BaseConfig, FORWARD_RULES
+from activeloc_ros.control.pd import PDConfig
+from activeloc_ros.errors import ActivelocError, ConfigError
+from activeloc_ros.paths import write_atomic
+from activeloc_ros.progress import Progress
+from activeloc_ros.tracking.scenes import PAPER_NAMES, SCENES
+
+METHODS = (*MODEL_METHODS, 'random', 'oracle', *TRACKER_METHODS)
+MAIN_METHODS = ('ours', *TRACKER_METHODS, 'random', 'oracle')
+ABLATION_METHODS = tuple(m for m in MODEL_METHODS if m != 'ours')
+ABLATION_SCENE = 'room'
+SCORES = ('recall', 'precision', 'precision_relaxed', 'episode_length', 'reward', 'success',
+          'aae_deg', 'in_view')
+# Paper Table 1: (recall, precision, relaxed precision) of ours per scene (our reading of its
+# figures), for the table's reference row.
+PAPER_OURS = {'snow': (0.75, None, None), 'room': (0.68, None, None),
+              'urban': (0.85, None, None), 'parking': (0.49, None, None)}
+PD_OPTIONS = ('dead_band', 'derivative', 'derivative_tau')
+
+
+def base_config(method: str, control: dict) -> BaseConfig:
+    """The base controller of a method: its PD variant plus the --control settings."""
+    known = set(BaseConfig.__dataclass_fields__) - {'pd'}
+    unknown = sorted(set(control) - known - set(PD_OPTIONS))
+    if unknown:
+        raise ConfigError(f'unknown --control settings {unknown}; known: '
+                          f'{", ".join(sorted(known | set(PD_OPTIONS)))}')
+    variant = method_parts(method)[1] if method in MODEL_METHODS else None
+    pd_options = {k: v for k, v in control.items() if k in PD_OPTIONS}
+    pd = PDConfig.variant(variant, **pd_options) if variant else PDConfig(**pd_options)
+    return BaseConfig(pd=pd, **{k: v for k, v in control.items() if k in known})
+
+
+def make_pointer(method: str, settings: dict, seed: int):
+    from activeloc_ros.bench.pointers import (
+        ModelPointer, OraclePointer, RandomPointer, TrackerMethod)
+    if method in TRACKER_METHODS:
+        return TrackerMethod(method, start='truth')
+    if method == 'random':
+        return RandomPointer(seed=seed)
+    if method == 'oracle':
+        return OraclePointer()
+    if method not in MODEL_METHODS:
+        raise ConfigError(f'unknown method {method!r}; known: {", ".join(METHODS)}')
+    overrides, _ = method_parts(method)
+    return ModelPointer(method, {'seed': seed, **settings, **overrides})
+
+
+class Remembering:
+    """A pointer that keeps its newest answer, for the overlay video."""
+
+    def __init__(self, pointer):
+        self.pointer, self.name = pointer, pointer.name
+        self.last: Pointing | None = None
+
+    def reset(self, sequence: str) -> None:
+        self.pointer.reset(sequence)
+        self.last = None
+
+    def locate(self, view) -> Pointing:
+        self.last = self.pointer.locate(view)
+        return self.last
+
+
+class TrackingVideo:
+    """The camera view (true box green, the method's map and choice red) beside a top-down
+    map (base blue, target red, their paths), as H.264; written to a temporary file that
+    `commit` puts in place once the tables are written."""
+
+    SIDE = 480
+
+    def __init__(self, path: Path, world, pointer: Remembering, label: str):
+        self.path, self.world, self.pointer, self.label = path, world, pointer, label
+        self.tmp = path.with_name(f'.{path.stem}.tmp{path.suffix}')
+        self.tmp.unlink(missing_ok=True)
+        self.writer = None
+        self.base_path: list[tuple[float, float]] = []
+        self.target_path: list[tuple[float, float]] = []
+
+    def _plan_px(self, xy) -> tuple[int, int]:
+        x0, y0, x1, y1 = self.world.plan.bounds
+        scale = (self.SIDE - 20) / max(x1 - x0, y1 - y0)
+        return (int(10 + (xy[0] - x0) * scale), int(self.SIDE - 10 - (xy[1] - y0) * scale))
+
+    def top_down(self, record: FrameRecord) -> np.ndarray:
+        img = np.full((self.SIDE, self.SIDE, 3), 245, np.uint8)
+        x0, y0, x1, y1 = self.world.plan.bounds
+        cv2.rectangle(img, self._plan_px((x0, y0)), self._plan_px((x1, y1)), (0, 0, 0), 1)
+        scale = (self.SIDE - 20) / max(x1 - x0, y1 - y0)
+        for ox, oy, r in self.world.plan.obstacles:
+            cv2.circle(img, self._plan_px((ox, oy)), max(1, int(r * scale)), (150, 150, 150),
+                       -1)
+        for path, colour in ((self.base_path, (200, 80, 0)), (self.target_path, (0, 0, 220))):
+            if len(path) > 1:
+                cv2.polylines(img, [np.array([self._plan_px(p) for p in path], np.int32)],
+                              False, colour, 1, cv2.LINE_AA)
+        if record.base_xy is not None:
+            bx, by = self._plan_px(record.base_xy)
+            tip = (record.base_xy[0] + 0.8 * math.cos(record.pan),
+                   record.base_xy[1] + 0.8 * math.sin(record.pan))
+            cv2.arrowedLine(img, (bx, by), self._plan_px(tip), (200, 80, 0), 2)
+        for _, walker, _ in self.world.people[1:]:      # the distractors, now
+            cv2.circle(img, self._plan_px((walker.x, walker.y)), 4, (120, 120, 0), -1)
+        if record.target_xy is not None:
+            cv2.circle(img, self._plan_px(record.target_xy), 5, (0, 0, 220), -1)
+        cv2.putText(img, f'{self.label}  step {record.index}  reward {record.reward:+.2f}',
+                    (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(img, 'base (blue), target (red), others (teal)', (8, self.SIDE - 2),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+        return img
+
+    def add(self, scene, record: FrameRecord, camera: np.ndarray | None) -> None:
+        if record.base_xy is not None:
+            self.base_path.append(record.base_xy)
+            self.target_path.append(record.target_xy)
+        if camera is None:
+            return
+        h, w = camera.shape[:2]
+        frame = cv2.cvtColor(camera, cv2.COLOR_RGB2BGR)
+        last = self.pointer.last
+        if last is not None and last.heat is not None:
+            heat = cv2.resize(np.asarray(last.heat, np.float32), (w, h),
+                              interpolation=cv2.INTER_NEAREST)
+            heat = heat / max(float(heat.max()), 1e-9)         # (H, W) in [0, 1]
+            colour = cv2.applyColorMap((255 * heat).astype(np.uint8), cv2.COLORMAP_JET)
+            alpha = 0.5 * heat[..., None]                      # the map where it is high
+            frame = (frame * (1 - alpha) + colour * alpha).astype(np.uint8)
+        view = self.world.view
+        if view is not None and view.truth_box is not None:
+            x, y, bw, bh = view.truth_box
+            cv2.rectangle(frame, (x, y), (x + bw - 1, y + bh - 1), (0, 255, 0), 1)
+        if last is not None and last.location is not None:
+            u, v = last.location
+            cv2.drawMarker(frame, (int(round(u)), int(round(v))), (0, 0, 255),
+                           cv2.MARKER_CROSS, 14, 2)
+        frame = np.hstack([cv2.resize(frame, (self.SIDE * w // h, self.SIDE)),
+                           self.top_down(record)])
+        if self.writer is None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.writer = H264Writer(self.tmp, 1.0 / self.world.config.step,
+                                     (frame.shape[1], frame.shape[0]))
+        self.writer.write(frame)
+
+    def finish(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+
+    def abandon(self) -> None:
+        try:
+            self.finish()
+        finally:
+            self.tmp.unlink(missing_ok=True)
+
+    @staticmethod
+    def commit(path: Path) -> None:
+        tmp = path.with_name(f'.{path.stem}.tmp{path.suffix}')
+        if tmp.exists():
+            os.replace(tmp, path)
+
+
+# -- one run (method x scene x episode), in a worker process ---------------------------------
+
+_POINTERS: dict = {}   # per worker process: one pointer per method, its encoder reused
+
+
+def run_job(job: dict) -> dict:
+    """Run one method on one episode; its scores, or the reason it failed."""
+    import torch
+    before = torch.get_num_threads(), cv2.getNumThreads()
+    if job.get('threads'):
+        torch.set_num_threads(job['threads'])
+        cv2.setNumThreads(job['threads'])
+    try:
+        return _run_job(job)
+    finally:
+        torch.set_num_threads(before[0])
+        cv2.setNumThreads(before[1])
+
+
+def _run_job(job: dict) -> dict:
+    from activeloc_ros.tracking.world import TrackingConfig, TrackingWorld
+    started = time.perf_counter()
+    where = {'method': job['method'], 'scene': job['scene'], 'episode': job['episode']}
+    try:
+        key = (job['method'], json.dumps(job['settings'], sort_keys=True), job['seed'])
+        if key not in _POINTERS:
+            _POINTERS[key] = make_pointer(job['method'], job['settings'], job['seed'])
+        pointer = Remembering(_POINTERS[key])
+        config = TrackingConfig(**job['world'])
+        with TrackingWorld(job['scene'], job['episode_seed'], config) as world:
+            video = (TrackingVideo(Path(job['video']), world, pointer, job['method'])
+                     if job['video'] else None)
+            try:
+                episode = run_episode(world, pointer, controller=base_config(
+                    job['method'], job['control']), mode=job['mode'],
+                    name=f'{job["scene"]}-{job["episode"]}',
+                    on_frame=video.add if video else None)
+            except BaseException:
+                if video:
+                    video.abandon()
+                raise
+            if video:
+                video.finish()
+            scores = world.episode_score().as_dict()
+    except ActivelocError as err:
+        return {**where, 'error': str(err)}
+    except Exception:  # noqa: B902 - one broken run must not cost the others
+        return {**where, 'error': f'{job["method"]} failed: {traceback.format_exc()}'}
+    rows = episode.records
+    scores['aae_deg'] = float(np.mean([r.aae_deg for r in rows])) if rows else math.nan
+    scores['in_view'] = float(np.mean([r.in_view for r in rows])) if rows else math.nan
+    return {**where, 'scores': scores, 'seconds': time.perf_counter() - started,
+            'compute_ms': float(np.mean(episode.compute_s) * 1e3) if episode.compute_s else 0.0,
+            'rewards': [round(r.reward, 4) for r in rows]}
+
+
+def _ignore_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+# -- the whole benchmark ---------------------------------------------------------------------
+
+def plan_jobs(scenes: list[str], methods: list[str], *, episodes: int, seed: int,
+              video_dir: Path | None, videos: str, common: dict) -> list[dict]:
+    """Every (scene, method, episode) to run: the ablation rows on the room scene only."""
+    work = []
+    for scene in scenes:
+        for method in methods:
+            if method in ABLATION_METHODS and scene != ABLATION_SCENE:
+                continue
+            for episode in range(episodes):
+                film = video_dir is not None and (videos == 'all' or episode == 0)
+                video = str(video_dir / scene / f'{method}-{episode}.mp4') if film else ''
+                work.append({'scene': scene, 'method': method, 'episode': episode,
+                             'episode_seed': 1000 * seed + episode, 'seed': seed,
+                             'video': video, **common})
+    # the slow model methods first, so the fast ones fill the gaps at the end
+    work.sort(key=lambda j: (j['method'] not in MODEL_METHODS, j['scene'], j['method']))
+    return work
+
+
+def evaluate(work: list[dict], *, jobs: int, quiet: bool) -> list[dict]:
+    progress = None if quiet else Progress(len(work), 'tracking episodes')
+    runs = []
+    if jobs == 1:
+        results, pool = map(run_job, work), None
+    else:
+        pool = multiprocessing.get_context('spawn').Pool(jobs, initializer=_ignore_sigint)
+        results = pool.imap_unordered(run_job, work)
+    try:
+        for run in results:
+            runs.append(run)
+            if progress is not None:
+                progress.update(1, note=f'{run["method"]} {run["scene"]} #{run["episode"]}')
+    finally:
+        if pool is not None:
+            pool.terminate()
+    if progress is not None:
+        progress.close()
+    return runs
+
+
+def summarise(runs: list[dict], methods: list[str], scenes: list[str]) -> dict:
+    """Per method and scene, the means over its episodes (failed runs are listed apart)."""
+    failed = [r for r in runs if 'error' in r]
+    rows = []
+    for method in methods:
+        per_scene = {}
+        for scene in scenes:
+            done = [r for r in runs if r['method'] == method and r['scene'] == scene
+                    and 'error' not in r]
+            if not done:
+                continue
+            per_scene[scene] = {k: float(np.mean([r['scores'][k] for r in done]))
+                                for k in SCORES}
+            per_scene[scene]['episodes'] = len(done)
+            per_scene[scene]['compute_ms'] = float(np.mean([r['compute_ms'] for r in done]))
+        rows.append({'method': method, 'scenes': per_scene})
+    return {'methods': rows, 'scenes': scenes,
+            'failed': [{k: r[k] for k in ('method', 'scene', 'episode', 'error')}
+                       for r in failed],
+            'episodes': [{k: r[k] for k in ('method', 'scene', 'episode', 'scores',
+                                              'rewards')} for r in runs if 'error' not in r]}
+
+
+def _cell(s: dict | None) -> str:
+    if s is None:
+        return '-'
+    return f'{s["recall"]:.2f} | {s["precision"]:.2f} ({s["precision_relaxed"]:.2f})'
+
+
+def table(result: dict, methods: list[str], scenes: list[str], *, title: str) -> str:
+    head = ' | '.join(f'{s} ({PAPER_NAMES[s]}) recall | precision (relaxed)' for s in scenes)
+    lines = [f'## {title}', '', f'| method | {head} |',
+             '|---|' + '---:|---:|' * len(scenes)]
+    for row in result['methods']:
+        if row['method'] in methods and row['scenes']:
+            lines.append(f'| {row["method"]} | '
+                         + ' | '.join(_cell(row['scenes'].get(s)) for s in scenes) + ' |')
+    if title.startswith('Table 1'):
+        lines.append('| ours, paper (Unreal) | ' + ' | '.join(
+            f'{PAPER_OURS[s][0]:.2f} | -' for s in scenes) + ' |')
+        lines.append('| AD-VAT+, SmartTarget-RL, RandomTarget-RL | '
+                     + ' | '.join('reported in Unreal, not comparable | -' for _ in scenes)
+                     + ' |')
+    lines += ['', 'episode length, accumulated reward, success rate, mean |bearing| (deg), in '
+              'view (%), ms per step:', '',
+              '| method | scene | length | reward | success | bearing | in view | ms |',
+              '|---|---|---:|---:|---:|---:|---:|---:|']
+    for row in result['methods']:
+        if row['method'] not in methods:
+            continue
+        for scene in scenes:
+            s = row['scenes'].get(scene)
+            if s is not None:
+                lines.append(f'| {row["method"]} | {scene} | {s["episode_length"]:.0f} | '
+                             f'{s["reward"]:.1f} | {100 * s["success"]:.0f}% | '
+                             f'{s["aae_deg"]:.1f} | {100 * s["in_view"]:.0f} | '
+                             f'{s["compute_ms"]:.0f} |')
+    return '\n'.join(lines) + '\n'
+
+
+def to_csv(result: dict) -> str:
+    out = io.StringIO()
+    w = csv.writer(out)
+    w.writerow(['method', 'scene', 'episodes', *SCORES, 'compute_ms'])
+    for row in result['methods']:
+        for scene, s in row['scenes'].items():
+            w.writerow([row['method'], scene, s['episodes'],
+                        *(f'{s[k]:.4f}' for k in SCORES), f'{s["compute_ms"]:.2f}'])
+    return out.getvalue()
+
+
+def plots(result: dict, out: Path) -> list[Path]:
+    """Per scene: recall, precision and relaxed precision of every method (PNG)."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    paths = []
+    keys = ('recall', 'precision', 'precision_relaxed')
+    for scene in result['scenes']:
+        rows = [r for r in result['methods'] if scene in r['scenes']]
+        if not rows:
+            continue
+        fig, ax = plt.subplots(figsize=(max(7, 0.7 * len(rows) + 3), 4))
+        width = 0.27
+        for i, key in enumerate(keys):
+            ax.bar(np.arange(len(rows)) + (i - 1) * width,
+                   [r['scenes'][scene][key] for r in rows], width, label=key)
+        ax.axhline(0, color='black', linewidth=0.6)
+        ax.set_xticks(np.arange(len(rows)), [r['method'] for r in rows], rotation=30,
+                      ha='right', fontsize=8)
+        ax.set_title(f'{scene} ({PAPER_NAMES[scene]}): higher is better')
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        buf = io.BytesIO()
+        fig.savefig(buf, format='png', dpi=110)
+        plt.close(fig)
+        path = out / f'{scene}.png'
+        write_atomic(path, buf.getvalue())
+        paths.append(path)
+    return paths
+
+
+# -- command line ----------------------------------------------------------------------------
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog='python -m activeloc_ros.bench tracking',
+        description='Simulated active tracking (paper Table 1 and, on the room scene, Table '
+                    '3): each method turns and drives a mobile base to keep a walking person '
+                    'in view; AD-VAT\'s recall and precision per scene.')
+    p.add_argument('--scenes', nargs='+', metavar='NAME',
+                   help=f'scenes (default all): {", ".join(SCENES)}')
+    p.add_argument('--methods', nargs='+', metavar='NAME',
+                   help=f'methods (default {", ".join(MAIN_METHODS)}; add the Table 3 rows, '
+                        f'run on the room scene only, with --ablations); known: '
+                        f'{", ".join(METHODS)}')
+    p.add_argument('--ablations', action='store_true',
+                   help='also the Table 3 rows: ' + ', '.join(ABLATION_METHODS))
+    p.add_argument('--episodes', type=int, default=10, metavar='N',
+                   help='episodes per scene and method (default 10)')
+    p.add_argument('--seed', type=int, default=0,
+                   help='episode e is built from seed 1000 * SEED + e (default 0)')
+    p.add_argument('--mode', choices=MODES, default='lockstep',
+                   help='lockstep: every step processed, deterministic (default); realtime: '
+                        'the world goes on while a method computes')
+    p.add_argument('--target', choices=('nav', 'ram'), default='nav',
+                   help="the target's behaviour, gym-unrealcv's Nav (default) or Ram")
+    p.add_argument('--forward', choices=FORWARD_RULES, default=None,
+                   help='how the base drives forward, for every method (default the '
+                        "controller's, size)")
+    p.add_argument('--world', nargs='+', action='extend', metavar='KEY=VALUE', default=[],
+                   help='TrackingConfig fields, e.g. max_steps=200 lost_steps=20')
+    p.add_argument('--control', nargs='+', action='extend', metavar='KEY=VALUE', default=[],
+                   help='base controller settings for every method (BaseConfig fields and '
+                        'dead_band, derivative, derivative_tau), e.g. pace=0.8')
+    p.add_argument('--set', nargs='+', action='extend', metavar='KEY=VALUE', default=[],
+                   help='PerceptionConfig fields for every model method, e.g. lr=1e-4')
+    p.add_argument('--jobs', type=int, default=min(2, os.cpu_count() or 1), metavar='N',
+                   help='worker processes (default: 2 or the number of cores)')
+    p.add_argument('--videos', choices=('first', 'all', 'none'), default='first',
+                   help='overlay videos of the first episode of each scene and method '
+                        '(default), of every episode, or none')
+    p.add_argument('--json', action='store_true',
+                   help='one JSON object per method on stdout')
+    p.add_argument('--out', metavar='DIR', default='out/tracking',
+                   help='results, plots and videos go here (default out/tracking)')
+    p.add_argument('--quiet', action='store_true', help='no progress on stderr')
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    try:
+        return run(args)
+    except KeyboardInterrupt:
+        for tmp in (Path(args.out) / 'videos').glob('*/.*.tmp.mp4'):
+            tmp.unlink(missing_ok=True)
+        print(f'\ninterrupted: {args.out} keeps the previous results', file=sys.stderr)
+        return 130
+
+
+def run(args: argparse.Namespace) -> int:
+    from activeloc_ros.tracking.world import TrackingConfig
+    try:
+        scenes = names(args.scenes) or list(SCENES)
+        for s in scenes:
+            if s not in SCENES:
+                raise ConfigError(f'unknown scene {s!r}; known: {", ".join(SCENES)}')
+        methods = names(args.methods) or list(MAIN_METHODS)
+        if args.ablations:
+            methods += [m for m in ABLATION_METHODS if m not in methods]
+        for m in methods:
+            if m not in METHODS:
+                raise ConfigError(f'unknown method {m!r}; known: {", ".join(METHODS)}')
+        if args.episodes < 1 or args.jobs < 1:
+            raise ConfigError('--episodes and --jobs must be >= 1')
+        world = key_values(args.world, '--world')
+        if 'target_speed' in world:
+            world['target_speed'] = tuple(world['target_speed'])
+        world.setdefault('target', args.target)
+        TrackingConfig(**world)
+        control = key_values(args.control, '--control')
+        if args.forward:
+            control['forward'] = args.forward
+        base_config('ours', control)
+        settings = key_values(args.set, '--set')
+        if any(m in MODEL_METHODS for m in methods):
+            make_pointer('ours', settings, args.seed)    # weights, settings: now
+    except (ActivelocError, TypeError) as err:
+        print(f'error: {err}', file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    threads = max(1, (os.cpu_count() or 1) // args.jobs)
+    work = plan_jobs(scenes, methods, episodes=args.episodes, seed=args.seed,
+                     video_dir=None if args.videos == 'none' else out / 'videos',
+                     videos=args.videos,
+                     common={'settings': settings, 'control': control, 'world': world,
+                             'mode': args.mode, 'threads': threads})
+    if not args.quiet:
+        print(f'{len(work)} episodes: {len(methods)} methods x {len(scenes)} scenes x '
+              f'{args.episodes}, {args.mode}, target {world["target"]}', file=sys.stderr)
+    started = time.monotonic()
+    result = summarise(evaluate(work, jobs=args.jobs, quiet=args.quiet), methods, scenes)
+    for fail in result['failed']:
+        print(f'failed: {fail["method"]} on {fail["scene"]} #{fail["episode"]}: '
+              f'{fail["error"]}', file=sys.stderr)
+    result['settings'] = {'scenes': scenes, 'methods': methods, 'episodes': args.episodes,
+                          'seed': args.seed, 'mode': args.mode, 'world': world,
+                          'control': control, 'set': settings, 'jobs': args.jobs,
+                          'seconds': round(time.monotonic() - started, 1)}
+    main_rows = [m for m in methods if m not in ABLATION_METHODS]
+    text = table(result, main_rows, scenes, title='Table 1: active tracking')
+    write_atomic(out / 'table1.md', text)
+    if ABLATION_SCENE in scenes and any(m in ABLATION_METHODS for m in methods):
+        rows = [m for m in methods if m in MODEL_METHODS]
+        ablation = table(result, rows, [ABLATION_SCENE], title='Table 3: ablations (room)')
+        write_atomic(out / 'table3.md', ablation)
+        text += '\n' + ablation
+    write_atomic(out / 'table1.csv', to_csv(result))
+    write_atomic(out / 'tracking.json', json.dumps(result) + '\n')
+    pictures = plots(result, out)
+    for job in work:
+        if job['video']:
+            TrackingVideo.commit(Path(job['video']))
+    if args.json:
+        for row in result['methods']:
+            print(json.dumps({'method': row['method'], 'scenes': {
+                s: {k: v[k] for k in ('recall', 'precision', 'precision_relaxed',
+                                      'episode_length', 'reward')}
+                for s, v in row['scenes'].items()}}))
+    else:
+        print(text, end='')
+        print(f'\nwrote {out}/table1.md, table1.csv, tracking.json, '
+              + ', '.join(p.name for p in pictures)
+              + ('' if args.videos == 'none' else ', videos/<scene>/<method>-<episode>.mp4'))
+        print(f'{result["settings"]["seconds"]:.0f} s')
+    return 0 if not result['failed'] else 1
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

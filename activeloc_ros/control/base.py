@@ -1,0 +1,226 @@
+"""The reactive controller of a mobile base (the tracking experiment, paper Sec. 4.1):
+action pixel -> bearing error -> the paper's PD law -> a velocity command.
+
+The PD law (Eq. 4) gives the change of heading that centres the action; the base makes it
+over one control step, so the turn rate is that change divided by the step, within the
+base's limit. The paper's PD only turns; how fast to go forward is our own rule
+(``forward``), a proportional law on the distance to keep (``distance``) from what the
+pointer says is at the location (its box: a tracker's, the true one, the surprise map's
+blob):
+
+- ``ground`` (default): the distance from where the box stands on the ground. The camera's
+  height and tilt are known, so the image row of the box's bottom gives the distance to its
+  foot on a flat floor;
+- ``size``: keep the box as large as it first was (the median of the first ``size_frames``
+  boxes, taken while the target stands at the start distance); the distance is inversely
+  proportional to the box's size (square root of its area);
+- ``constant``: ``pace`` m/s whenever a location is accepted;
+- ``none``: turn only.
+
+The speed is ``distance_gain`` times the distance error, within 0 and ``max_speed``; without a
+box the base keeps ``pace``. It slows as cos(bearing error): it turns first, then goes. No
+location for ``watchdog_timeout`` s stops the base. ``actions: discrete`` snaps each command
+to AD-VAT's seven actions (stop, forward, backward, turn left or right, forward and turn
+left or right).
+All times are explicit arguments in seconds; nothing here reads a clock.
+"""
+from dataclasses import dataclass, field
+import math
+import statistics
+
+from activeloc_ros.control.geometry import angular_error, Intrinsics
+from activeloc_ros.control.pd import PDConfig, PDController
+from activeloc_ros.errors import ConfigError
+
+FORWARD_RULES = ('ground', 'size', 'constant', 'none')
+ACTION_SETS = ('continuous', 'discrete')
+
+
+@dataclass(frozen=True)
+class Twist:
+    """A base's velocity: forward (m/s) and turn rate (rad/s, > 0 = left)."""
+    forward: float = 0.0
+    turn: float = 0.0
+
+
+@dataclass(frozen=True)
+class BaseConfig:
+    """Everything the base controller needs besides the intrinsics.
+
+    :param step: the control period (s) over which the PD's heading change is made.
+    :param camera_tilt_deg: the camera's fixed tilt above the horizon.
+    :param camera_height: the camera's height above the floor, m (the ``ground`` rule).
+    :param distance: the distance to keep, m (AD-VAT's 2.5).
+    :param distance_gain: forward speed per metre of distance error, 1/s.
+    :param min_peak: as the arm controller's: a weaker map carries no information.
+    :param discrete_speed: forward speed (m/s) of AD-VAT's moving actions.
+    :param discrete_turn_deg_s: turn rate of its turning actions.
+    """
+
+    pd: PDConfig = field(default_factory=PDConfig)
+    step: float = 0.1
+    max_speed: float = 2.0
+    max_turn_deg_s: float = 90.0
+    camera_tilt_deg: float = -10.0
+    camera_height: float = 1.5
+    forward: str = 'ground'
+    distance: float = 2.5
+    distance_gain: float = 1.5
+    pace: float = 1.0
+    size_frames: int = 5
+    min_peak: float = 0.0102
+    watchdog_timeout: float = 1.0
+    actions: str = 'continuous'
+    discrete_speed: float = 1.0
+    discrete_turn_deg_s: float = 30.0
+
+    def __post_init__(self):
+        for name in ('step', 'max_speed', 'max_turn_deg_s', 'watchdog_timeout',
+                     'discrete_speed', 'discrete_turn_deg_s', 'camera_height', 'distance'):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f'{name} must be > 0, got {value}')
+        for name in ('pace', 'distance_gain'):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ConfigError(f'{name} must be >= 0, got {value}')
+        if not math.isfinite(self.camera_tilt_deg) or abs(self.camera_tilt_deg) >= 90:
+            raise ConfigError(f'camera_tilt_deg must be within +-90, got {self.camera_tilt_deg}')
+        if self.size_frames < 1:
+            raise ConfigError(f'size_frames must be >= 1, got {self.size_frames}')
+        if math.isnan(self.min_peak):
+            raise ConfigError('min_peak must not be NaN')
+        if self.forward not in FORWARD_RULES:
+            raise ConfigError(f'forward must be one of {list(FORWARD_RULES)}, '
+                              f'got {self.forward!r}')
+        if self.actions not in ACTION_SETS:
+            raise ConfigError(f'actions must be one of {list(ACTION_SETS)}, '
+                              f'got {self.actions!r}')
+
+
+@dataclass(frozen=True)
+class BaseCommand:
+    """One velocity command, the time it was made, why, and the capture stamp of the action
+    location that caused it (None for stops)."""
+    twist: Twist
+    t: float
+    reason: str
+    stamp: float | None = None
+
+
+class BaseController:
+    """Turns time-stamped action locations into velocity commands for a mobile base."""
+
+    def __init__(self, config: BaseConfig, *, t0: float = 0.0):
+        self.config = config
+        self.pd = PDController(config.pd)
+        self.intrinsics: Intrinsics | None = None
+        self.ignored: dict[str, int] = {}
+        self.commands = 0
+        self.yaw: list[tuple[float, float]] = []     # (t, heading) odometry, newest last
+        self.sizes: list[float] = []
+        self._last_capture = -math.inf
+        self._last_accept = t0
+        self._moving = False
+
+    def set_intrinsics(self, intrinsics: Intrinsics) -> None:
+        self.intrinsics = intrinsics
+
+    def observe(self, pose: tuple[float, float, float], t: float) -> None:
+        """The base's odometry (x, y, heading in radians) at ``t``."""
+        if len(pose) == 3 and all(math.isfinite(v) for v in pose) and math.isfinite(t):
+            self.yaw = [s for s in self.yaw if s[0] > t - 2.0] + [(t, float(pose[2]))]
+
+    def _heading_at(self, t: float) -> float:
+        before = [h for s, h in self.yaw if s <= t]
+        return before[-1] if before else (self.yaw[0][1] if self.yaw else 0.0)
+
+    def _ignore(self, reason: str, t_now: float) -> BaseCommand | None:
+        self.ignored[reason] = self.ignored.get(reason, 0) + 1
+        return self.tick(t_now)
+
+    def on_location(self, u: float, v: float, t_capture: float, t_now: float, *,
+                    peak: float | None = None, box: tuple | None = None
+                    ) -> BaseCommand | None:
+        """React to an action at pixel (u, v) of a frame captured at ``t_capture``; ``box``
+        (x, y, w, h; px) is the extent of what is there, if the pointer knows it."""
+        cfg, intr = self.config, self.intrinsics
+        if intr is None:
+            return self._ignore('no camera info', t_now)
+        if not (math.isfinite(t_capture) and math.isfinite(t_now)):
+            return self._ignore('bad time', t_now)
+        if not intr.contains(u, v):
+            return self._ignore('outside image', t_now)
+        if peak is not None and not (math.isfinite(peak) and peak >= cfg.min_peak):
+            return self._ignore('weak or bad peak', t_now)
+        if t_capture <= self._last_capture:
+            return self._ignore('out of order', t_now)
+        if t_now - self._last_accept > cfg.watchdog_timeout:
+            self.pd.reset()
+        self._last_capture, self._last_accept = t_capture, t_now
+        error, _ = angular_error(u, v, intr, camera_tilt=math.radians(cfg.camera_tilt_deg))
+        heading = self._heading_at(t_capture)
+        change, _ = self.pd.update((error, 0.0), t_capture, camera=(heading, 0.0))
+        max_turn = math.radians(cfg.max_turn_deg_s)
+        turn = 0.0 if self.pd.within_dead_band((error, 0.0)) else change / cfg.step
+        turn = min(max(turn, -max_turn), max_turn)
+        forward = max(math.cos(error), 0.0) * self._speed(box)
+        return self._emit(Twist(forward, turn), t_now, 'track', t_capture)
+
+    def distance_to(self, box: tuple) -> float | None:
+        """The distance (m) to what ``box`` holds by the forward rule; None when it cannot
+        tell (no box, a box not on the floor, the reference still being taken)."""
+        cfg = self.config
+        if box is None or len(box) != 4 or not all(math.isfinite(b) for b in box) \
+                or box[2] <= 0 or box[3] <= 0:
+            return None
+        if cfg.forward == 'ground':
+            x, y, w, h = box
+            _, below = angular_error(x + w / 2 - 0.5, y + h - 0.5, self.intrinsics,
+                                     camera_tilt=math.radians(cfg.camera_tilt_deg))
+            down = -(below + math.radians(cfg.camera_tilt_deg))   # below the horizon
+            return cfg.camera_height / math.tan(down) if down > 0.01 else None
+        size = math.sqrt(box[2] * box[3])
+        if len(self.sizes) < cfg.size_frames:
+            self.sizes.append(size)
+            return None if len(self.sizes) < cfg.size_frames else cfg.distance
+        return cfg.distance * statistics.median(self.sizes) / size
+
+    def _speed(self, box: tuple | None) -> float:
+        cfg = self.config
+        if cfg.forward == 'none':
+            return 0.0
+        distance = None if cfg.forward == 'constant' else self.distance_to(box)
+        if distance is None:
+            return min(cfg.pace, cfg.max_speed)
+        return min(max(cfg.distance_gain * (distance - cfg.distance), 0.0), cfg.max_speed)
+
+    def tick(self, t_now: float) -> BaseCommand | None:
+        """Watchdog: when locations stop arriving, one stop command, then silence."""
+        if (self._moving and math.isfinite(t_now)
+                and t_now - self._last_accept > self.config.watchdog_timeout):
+            self.pd.reset()
+            return self.hold(t_now)
+        return None
+
+    def hold(self, t_now: float) -> BaseCommand:
+        """Stop the base."""
+        return self._emit(Twist(), t_now, 'hold', None)
+
+    def _emit(self, twist: Twist, t_now: float, reason: str,
+              stamp: float | None) -> BaseCommand:
+        if self.config.actions == 'discrete':
+            twist = self.discrete(twist)
+        self._moving = twist != Twist()
+        self.commands += 1
+        return BaseCommand(twist, t_now, reason, stamp)
+
+    def discrete(self, twist: Twist) -> Twist:
+        """The AD-VAT action nearest ``twist``: forward, backward or neither, combined with
+        a left or right turn or none (never backward and turning)."""
+        cfg = self.config
+        speed, rate = cfg.discrete_speed, math.radians(cfg.discrete_turn_deg_s)
+        forward = speed if twist.forward > speed / 2 else -speed if twist.forward < -speed / 2 \
+            else 0.0
+        turn = rate if twist.turn > rate / 2 else -rate if twist.turn < -rate / 2 else 0.0
+        return Twist(forward, 0.0 if forward < 0 else turn)

@@ -1,0 +1,152 @@
+"""The tracking experiment: AD-VAT's reward, the base controller, the pybullet world and a
+smoke run of `bench tracking` (one scene, one short episode)."""
+import json
+import math
+
+import av
+import numpy as np
+import pytest
+
+from activeloc_ros.bench import tracking as bench
+from activeloc_ros.bench.pointers import OraclePointer
+from activeloc_ros.closed_loop import FrameRecord, run_episode
+from activeloc_ros.control.base import BaseConfig, BaseController, Twist
+from activeloc_ros.errors import ConfigError
+from activeloc_ros.tracking import reward
+from activeloc_ros.tracking.world import TrackingConfig, TrackingWorld
+
+SHORT = TrackingConfig(max_steps=30)
+
+
+@pytest.mark.parametrize('distance, bearing_deg, expected', [
+    (2.5, 0.0, 1.0),                 # where it should be
+    (5.0, 0.0, 0.0),                 # twice as far: the distance term is 1
+    (2.5, 22.5, 0.42),               # half of 45 deg off, and a little nearer along the axis
+    (10.0, 0.0, -1.0),               # far away: floored
+    (2.5, 180.0, -1.0),              # behind
+])
+def test_advat_reward(distance, bearing_deg, expected):
+    assert reward.reward(distance, math.radians(bearing_deg)) == pytest.approx(expected, abs=0.01)
+
+
+def test_relaxed_reward_forgives_distance_within_twice_rho():
+    assert reward.reward_relaxed(4.9, 0.0) == 1.0
+    assert reward.reward_relaxed(5.1, 0.0) == 0.0
+    score = reward.score([1.0, 0.5], [1.0, 1.0], 500)
+    assert (score.recall, score.precision, score.precision_relaxed, score.success) == (
+        2 / 500, 1.5 / 500, 2 / 500, False)
+
+
+def controller(**options) -> BaseController:
+    ctl = BaseController(BaseConfig(**options))
+    ctl.set_intrinsics(SHORT.intrinsics)
+    ctl.observe((0.0, 0.0, 0.0), 0.0)
+    return ctl
+
+
+def test_base_turns_toward_the_action_and_not_inside_the_dead_band():
+    right = controller().on_location(300, 120, 0.1, 0.1)
+    left = controller().on_location(20, 120, 0.1, 0.1)
+    ahead = controller().on_location(160, 120, 0.1, 0.1)
+    assert right.twist.turn < 0 < left.twist.turn
+    assert ahead.twist.turn == 0.0
+    assert abs(right.twist.turn) <= math.radians(90) + 1e-9
+
+
+def test_base_ignores_a_map_without_information_and_stops_when_locations_stop():
+    ctl = controller()
+    assert ctl.on_location(300, 120, 0.1, 0.1, peak=1 / 196) is None
+    assert ctl.ignored == {'weak or bad peak': 1}
+    assert ctl.on_location(300, 120, 0.2, 0.2, box=(150, 60, 30, 90)).twist != Twist()
+    assert ctl.tick(0.5) is None
+    stop = ctl.tick(1.5)
+    assert stop.twist == Twist() and stop.reason == 'hold'
+    assert ctl.tick(1.6) is None                            # once
+
+
+def test_ground_rule_reads_the_distance_from_the_box_foot():
+    ctl = controller()
+    cfg = ctl.config
+    for distance in (1.5, 2.5, 5.0):
+        down = math.atan(cfg.camera_height / distance) + math.radians(cfg.camera_tilt_deg)
+        v = SHORT.intrinsics.cy + SHORT.intrinsics.fy * math.tan(down)
+        box = (150, v - 80, 20, 80.5)     # its bottom edge on that image row
+        assert ctl.distance_to(box) == pytest.approx(distance, rel=0.01)
+    near = ctl.on_location(160, 100, 0.1, 0.1, box=(150, 100, 20, 139))
+    assert near.twist.forward == 0.0                        # too near: it does not go on
+
+
+def test_discrete_actions_are_advat_seven():
+    ctl = controller(actions='discrete')
+    command = ctl.on_location(300, 120, 0.1, 0.1)
+    rate = math.radians(ctl.config.discrete_turn_deg_s)
+    assert command.twist.turn == -rate
+    assert command.twist.forward in (0.0, ctl.config.discrete_speed)
+    with pytest.raises(ConfigError, match='actions'):
+        BaseConfig(actions='joystick')
+
+
+def test_world_is_reproducible_from_its_seed_and_starts_with_the_target_ahead():
+    with TrackingWorld('room', 3, SHORT) as a, TrackingWorld('room', 3, SHORT) as b, \
+            TrackingWorld('room', 4, SHORT) as c:
+        views = []
+        for world in (a, b, c):
+            next(world.times())
+            world.advance(0.0)
+            views.append(world.observe())
+        assert np.array_equal(views[0].rgb, views[1].rgb)
+        assert not np.array_equal(views[0].rgb, views[2].rgb)
+        distance, bearing = a.relative()
+        assert distance == pytest.approx(2.5) and bearing == pytest.approx(0.0, abs=1e-9)
+        x, y, w, h = views[0].truth_box
+        assert abs(x + w / 2 - 160) < 20 and h > 60      # a person, in the middle
+
+
+def test_world_moves_the_base_and_ends_an_episode_once_the_target_is_lost():
+    with TrackingWorld('room', 3, TrackingConfig(lost_steps=5)) as world:
+        steps = 0
+        for t in world.times():
+            if steps == 0:
+                world.act(Twist(0.0, math.radians(90)), t)     # spin away from the target
+            pose = world.advance(t)
+            world.observe()
+            world.score(FrameRecord(steps, t, pose[2], 0.0, True, False))
+            steps += 1
+        assert pose[2] != 0.0
+        assert steps < world.config.max_steps
+        assert world.rewards[-5:] == [reward.LOST] * 5
+
+
+def test_oracle_follows_the_walker(tmp_path):
+    with TrackingWorld('urban', 1, TrackingConfig(max_steps=60)) as world:
+        run_episode(world, OraclePointer(), controller=BaseConfig(), name='urban')
+        score = world.episode_score()
+    assert score.length == 60 and score.precision > 0.5 * 60 / 500
+
+
+def test_bench_tracking_smoke(tmp_path, capsys):
+    out = tmp_path / 'out'
+    assert bench.main(['--scenes', 'room', '--methods', 'ours', 'kcf', 'oracle', '--episodes',
+                       '1', '--world', 'max_steps=12', '--set', 'hidden=32',
+                       'encoder_precision=float32', '--jobs', '1', '--out', str(out),
+                       '--quiet']) == 0
+    text = capsys.readouterr().out
+    assert '| oracle | 1.00 |' in text           # all 12 steps of 12
+    result = json.loads((out / 'tracking.json').read_text())
+    assert {r['method'] for r in result['methods']} == {'ours', 'kcf', 'oracle'}
+    for name in ('table1.md', 'table1.csv', 'room.png'):
+        assert (out / name).stat().st_size > 0
+    with av.open(str(out / 'videos' / 'room' / 'ours-0.mp4')) as container:
+        assert container.streams.video[0].frames == 12
+
+
+@pytest.mark.parametrize('argv, message', [
+    (['--scenes', 'moon'], 'unknown scene'),
+    (['--methods', 'teleport'], 'unknown method'),
+    (['--world', 'target=hide'], 'target must be'),
+    (['--control', 'warp=9'], 'unknown --control'),
+])
+def test_bench_tracking_refuses_bad_input(tmp_path, capsys, argv, message):
+    assert bench.main(argv + ['--out', str(tmp_path)]) == 2
+    assert message in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
