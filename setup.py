@@ -61,6 +61,7 @@ setup(
         'console_scripts': [
             'camera_node = activeloc_ros.nodes.camera_node:main',
             'sim_node = activeloc_ros.nodes.sim_node:main',
+            'tracking_node = activeloc_ros.nodes.tracking_node:main',
             'perception_node = activeloc_ros.nodes.perception_node:main',
             'controller_node = activeloc_ros.nodes.controller_node:main',
             'arm_node = activeloc_ros.nodes.arm_node:main',

@@ -28,6 +28,12 @@ them: a namespace (-r __ns:=/robot1) lets two robots share a network; remaps, -p
 --mode lockstep (virtual camera) runs every node on simulated time that the sim node steps
 frame by frame, as `closed_loop` does; `camera/pose` holds, at each image's stamp, the pan
 and tilt the camera rendered with (`lockstep.recorded_poses`).
+
+    python -m activeloc_ros.bringup --world tracking:room --mode lockstep --record out/t1
+
+--world tracking:SCENE[:SEED] runs the simulated active-tracking world (`bench tracking`'s
+episode SEED, default 0) in place of a camera: tracking -> perception -> controller, the
+controller driving the world's mobile base on `cmd_vel`; the run ends with the episode.
 """
 import argparse
 import ctypes
@@ -52,6 +58,7 @@ from activeloc_ros.screen import AIM_LIMITS
 from activeloc_ros.sources import default_bag
 
 MODES = ('realtime', 'lockstep')
+DEFAULT_CAMERA = f'virtual:bag:{default_bag()}'
 # What the nodes publish (README, "The graph"): a recording subscribes to these before any
 # node starts, so it holds every message from the first on.
 GRAPH_TOPICS = {
@@ -61,9 +68,15 @@ GRAPH_TOPICS = {
     'surprise_map/image': 'sensor_msgs/msg/Image',
     'surprise_map/overlay': 'sensor_msgs/msg/Image',
     'action_location': 'geometry_msgs/msg/PointStamped',
+    'action_region': 'geometry_msgs/msg/PolygonStamped',
     'action_location/ignored': 'geometry_msgs/msg/PointStamped',
     'joint_commands': 'sensor_msgs/msg/JointState',
     'joint_states': 'sensor_msgs/msg/JointState',
+}
+TRACKING_TOPICS = {             # and those of the tracking world (--world tracking:SCENE)
+    'cmd_vel': 'geometry_msgs/msg/Twist',
+    'odom': 'nav_msgs/msg/Odometry',
+    'target/position': 'geometry_msgs/msg/PointStamped',
 }
 STARTUP_DEADLINE_S = 180.0    # model and weights load before the first map
 DRAIN_QUIET_S = 2.0           # after the camera ends: stop once no map came for this long
@@ -103,11 +116,15 @@ def parse_args(argv):
     parser = argparse.ArgumentParser(prog='python -m activeloc_ros.bringup', description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
                                      usage='%(prog)s [options] [--ros-args ARGS... [--]]')
-    parser.add_argument('--camera', default=f'virtual:bag:{default_bag()}',
+    parser.add_argument('--camera', default=DEFAULT_CAMERA,
                         help='camera source: bag:PATH, video:PATH, folder:PATH, device:N, '
                              'realsense or virtual:SCENE, the scene (bag:PATH, video:PATH, '
                              'folder:PATH, a sequence folder or name) on the virtual screen '
                              'the arm aims at (default: the bundled sample bag, virtual)')
+    parser.add_argument('--world', metavar='tracking:SCENE[:SEED]',
+                        help='a simulated world in place of the camera: tracking:SCENE runs '
+                             'the active-tracking world (room, urban, snow, parking; episode '
+                             'SEED, default 0) with the controller driving its mobile base')
     parser.add_argument('--mode', choices=MODES, default='realtime',
                         help="'realtime': every node on the wall clock, perception takes the "
                              "newest frame; 'lockstep': simulated time stepped frame by frame "
@@ -141,9 +158,22 @@ def parse_args(argv):
 def graph_nodes(args) -> tuple[str, ...]:
     """The nodes of the run, in start order: a virtual camera's sim node (camera and arm in
     one) or the camera and the arm, with perception and the controller."""
+    if args.world:
+        return ('tracking', 'perception', 'controller')
     if args.camera.startswith('virtual:'):
         return ('sim', 'perception', 'controller')
-    return tuple(name for name in NODE_NAMES if name != 'sim')
+    return tuple(name for name in NODE_NAMES if name not in ('sim', 'tracking'))
+
+
+def tracking_world(args) -> tuple[str, int]:
+    """(scene, seed) of --world tracking:SCENE[:SEED]; ConfigError for anything else."""
+    from activeloc_ros.tracking.scenes import SCENES
+    kind, _, rest = args.world.partition(':')
+    scene, _, seed = rest.partition(':')
+    if kind != 'tracking' or scene not in SCENES or not (seed == '' or seed.isdigit()):
+        raise ConfigError(f'--world {args.world!r}: use tracking:SCENE[:SEED] with SCENE one '
+                          f'of {", ".join(SCENES)} and SEED a whole number')
+    return scene, int(seed or 0)
 
 
 def node_arguments(node: str, args) -> list[str]:
@@ -153,16 +183,24 @@ def node_arguments(node: str, args) -> list[str]:
         ros_args += ['--params-file', str(path)]
     if args.mode == 'lockstep':
         ros_args += ['-p', 'use_sim_time:=true']
-    if node in ('camera', 'sim'):
-        ros_args += ['-p', f'rate:={args.rate}', '-p', f'loop:={str(args.loop).lower()}']
+    if node in ('camera', 'sim', 'tracking'):
+        ros_args += ['-p', f'rate:={args.rate}']
+        if node != 'tracking':
+            ros_args += ['-p', f'loop:={str(args.loop).lower()}']
         if args.record is not None:         # perception and the recorder
             ros_args += ['-p', 'min_subscribers:=2']
+    if node == 'tracking':
+        scene, seed = tracking_world(args)
+        ros_args += ['-p', f'scene:={scene}', '-p', f'seed:={seed}',
+                     '-p', f'lockstep:={str(args.mode == "lockstep").lower()}']
     if node == 'camera':
         ros_args += ['-p', f'source:={args.camera}']
     if node == 'sim':
         ros_args += ['-p', f'scene:={args.camera.partition(":")[2]}',
                      '-p', f'lockstep:={str(args.mode == "lockstep").lower()}']
-    if node == 'controller':
+    if node == 'controller' and args.world:
+        ros_args += ['-p', 'actuator:=base']
+    elif node == 'controller':
         limits = (screen_aim_limits(args.camera, args.params) if args.aim_limits == 'screen'
                   else {})
         for name, value in limits.items():
@@ -207,6 +245,13 @@ CAMERA_FORMS = {'bag': 'bag:PATH', 'video': 'video:PATH', 'folder': 'folder:PATH
 
 def preflight(args) -> None:
     """Every check that can fail before a node starts, with a clear message."""
+    if args.world:
+        tracking_world(args)
+        if args.camera != DEFAULT_CAMERA or args.arm != 'sim':
+            raise ConfigError(f'--world {args.world} is camera and base in one: it takes no '
+                              '--camera and no --arm')
+        args_files_checks(args)
+        return
     kind, _, target = args.camera.partition(':')
     if kind in CAMERA_FORMS and not target:
         raise ConfigError(f'--camera {args.camera!r} names no {kind}: use '
@@ -233,7 +278,13 @@ def preflight(args) -> None:
         raise ConfigError(f'--camera {args.camera}: the virtual camera rides on the sim '
                           "node's simulated arm, so --arm must be 'sim'")
     if args.mode == 'lockstep' and kind != 'virtual':
-        raise ConfigError('--mode lockstep steps a simulation: it needs --camera virtual:SCENE')
+        raise ConfigError('--mode lockstep steps a simulation: it needs --camera virtual:SCENE '
+                          'or --world tracking:SCENE')
+    args_files_checks(args)
+
+
+def args_files_checks(args) -> None:
+    """The checks of params files, node parameters and the other options."""
     for file in [*packaged_params_files(), *args.params]:
         check_params_file(Path(file))
     check_node_params(args)
@@ -335,7 +386,7 @@ class Monitor:
 
     def __init__(self, context, *, lockstep: bool = False, arm_node: bool = True,
                  cli_args=None):
-        from geometry_msgs.msg import PointStamped
+        from geometry_msgs.msg import PointStamped, Twist
         from rclpy.node import Node
         from sensor_msgs.msg import CameraInfo, JointState
         from std_msgs.msg import Float32MultiArray
@@ -355,6 +406,7 @@ class Monitor:
         sub(Float32MultiArray, 'surprise_map', lambda m: self._stamp(self.maps), 10)
         sub(PointStamped, 'action_location', self.on_location, 10)
         sub(JointState, 'joint_commands', self.on_command, 10)
+        sub(Twist, 'cmd_vel', lambda m: self._stamp(self.commands), 10)   # a base's
         sub(JointState, 'joint_states', self.on_state, 10)
 
     def _stamp(self, series):
@@ -503,6 +555,9 @@ class InProcessGraph:
 
 
 def percentile_text(monitor: Monitor) -> str:
+    if not monitor.latencies and monitor.commands:
+        return ("not measured: a base's cmd_vel carries no stamp (the controller's log "
+                'has its own figures)')
     p50, p95 = monitor.latency_ms()
     return f'p50 {p50:.0f} ms, p95 {p95:.0f} ms over {len(monitor.latencies)} commands'
 
@@ -568,7 +623,9 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
     if args.record is not None:
         from activeloc_ros.nodes.recorder import RecorderNode
         expected = dict(GRAPH_TOPICS)
-        if args.camera.startswith('virtual:'):
+        if args.world:
+            expected.update(TRACKING_TOPICS)
+        elif args.camera.startswith('virtual:'):
             expected['camera/pose'] = 'sensor_msgs/msg/JointState'
         if args.mode == 'lockstep':
             expected['/clock'] = 'rosgraph_msgs/msg/Clock'
@@ -595,8 +652,10 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
         else:
             env = dict(os.environ, PYTHONUNBUFFERED='1')
             children = [Child(node, args, log_dir, env) for node in graph_nodes(args)]
-        print(f'bringup: {" -> ".join(graph_nodes(args))}; camera {args.camera}; '
-              f'arm {args.arm}; {args.mode}; logs in {log_dir}', flush=True)
+        source = (f'world {args.world}' if args.world
+                  else f'camera {args.camera}; arm {args.arm}')
+        print(f'bringup: {" -> ".join(graph_nodes(args))}; {source}; {args.mode}; logs in '
+              f'{log_dir}', flush=True)
         camera_done_at = None
         while True:
             time.sleep(0.2)
@@ -677,7 +736,7 @@ def summary(monitor: Monitor, elapsed: float, reason: str, codes: dict, recorder
     map_rate = (len(monitor.maps) - 1) / span if span > 0 else 0.0
     lines = [f'summary: stopped after {elapsed:.1f} s ({reason})',
              f'  frames published {len(monitor.frames)}, surprise maps {len(monitor.maps)} '
-             f'({map_rate:.1f} maps/s), joint commands {len(monitor.commands)}',
+             f'({map_rate:.1f} maps/s), commands {len(monitor.commands)}',
              (f'  simulated time {monitor.sim_time:.2f} s (lockstep: every frame processed, '
               'commands at their frame time)' if monitor.lockstep
               else f'  frame->command latency {percentile_text(monitor)}')]

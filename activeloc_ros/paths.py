@@ -7,8 +7,9 @@ import tempfile
 
 SOURCE_ROOT = Path(__file__).resolve().parents[1]
 # the graph's nodes, each with its params/<node>.yaml, in the order bringup starts and stops
-# them (the arm last). A virtual camera's run has the sim node in place of camera and arm.
-NODE_NAMES = ('camera', 'sim', 'perception', 'controller', 'arm')
+# them (the arm last). A virtual camera's run has the sim node in place of camera and arm,
+# the tracking world's the tracking node.
+NODE_NAMES = ('camera', 'sim', 'tracking', 'perception', 'controller', 'arm')
 
 
 def share_path(relative: str) -> Path:

@@ -2,18 +2,21 @@
 smoke run of `bench tracking` (one scene, one short episode)."""
 import json
 import math
+import subprocess
+import sys
 
 import av
 import numpy as np
 import pytest
 
 from activeloc_ros.bench import tracking as bench
-from activeloc_ros.bench.pointers import OraclePointer
+from activeloc_ros.bench.pointers import ModelPointer, OraclePointer
 from activeloc_ros.closed_loop import FrameRecord, run_episode
 from activeloc_ros.control.base import BaseConfig, BaseController, Twist
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.tracking import reward
 from activeloc_ros.tracking.world import TrackingConfig, TrackingWorld
+from conftest import REPO
 
 SHORT = TrackingConfig(max_steps=30)
 
@@ -150,3 +153,49 @@ def test_bench_tracking_refuses_bad_input(tmp_path, capsys, argv, message):
     assert bench.main(argv + ['--out', str(tmp_path)]) == 2
     assert message in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
+
+
+def test_bringup_runs_the_tracking_world_in_lockstep_as_the_benchmark_does(tmp_path, graph_env):
+    """tracking -> perception -> controller on simulated time: the base goes where the
+    benchmark's closed loop drives it, step for step, and the bag holds the world's topics."""
+    record = tmp_path / 'run'
+    steps = 12
+    result = subprocess.run(
+        [sys.executable, '-m', 'activeloc_ros.bringup', '--world', 'tracking:room:1', '--mode',
+         'lockstep', '--record', str(record), '--log-dir', str(tmp_path / 'logs'),
+         '--ros-args', '-p', f'max_steps:={steps}', '-p', 'hidden:=32'],
+        env=graph_env, cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert 'node exit codes: tracking 0, perception 0, controller 0' in result.stdout
+
+    from rosbags.highlevel import AnyReader
+    with AnyReader([record]) as reader:
+        topics = {c.topic: c for c in reader.connections}
+        odom = [reader.deserialize(raw, conn.msgtype) for conn, _, raw in
+                reader.messages(connections=[topics['/odom']])]
+        counts = {t: sum(1 for _ in reader.messages(connections=[c])) for t, c in topics.items()}
+    assert counts['/cmd_vel'] == steps and counts['/target/position'] == steps
+    graph = [(m.pose.pose.position.x, m.pose.pose.position.y) for m in odom]
+
+    with TrackingWorld('room', 1, TrackingConfig(max_steps=steps)) as world:
+        episode = run_episode(world, ModelPointer('ours', {'seed': 0, 'hidden': 32}),
+                              controller=BaseConfig(), name='room')
+    closed_loop = [r.base_xy for r in episode.records]
+    assert len(graph) == steps
+    assert np.allclose(graph, closed_loop, atol=1e-6), (graph, closed_loop)
+    assert graph[-1] != graph[0]                    # the base moved
+
+
+@pytest.mark.parametrize('argv, message', [
+    (['--world', 'tracking:moon'], 'use tracking:SCENE[:SEED]'),
+    (['--world', 'tracking:room:x'], 'SEED a whole number'),
+    (['--world', 'screen:room'], 'use tracking:SCENE[:SEED]'),
+    (['--world', 'tracking:room', '--arm', 'serial:/dev/ttyACM0'], 'takes no --camera'),
+    (['--world', 'tracking:room', '--camera', 'device:0'], 'takes no --camera'),
+])
+def test_bringup_refuses_a_bad_world_before_any_node(tmp_path, capsys, argv, message):
+    from activeloc_ros import bringup
+    logs = tmp_path / 'logs'
+    assert bringup.main(argv + ['--log-dir', str(logs)]) == 2
+    assert message in capsys.readouterr().err
+    assert not logs.exists()

@@ -30,6 +30,7 @@ import statistics
 
 from activeloc_ros.control.geometry import angular_error, Intrinsics
 from activeloc_ros.control.pd import PDConfig, PDController
+from activeloc_ros.control.reactive import LatencyStats
 from activeloc_ros.errors import ConfigError
 
 FORWARD_RULES = ('ground', 'size', 'constant', 'none')
@@ -119,9 +120,26 @@ class BaseController:
         self.commands = 0
         self.yaw: list[tuple[float, float]] = []     # (t, heading) odometry, newest last
         self.sizes: list[float] = []
+        self.latency = LatencyStats()
         self._last_capture = -math.inf
         self._last_accept = t0
+        self._accepted = False
         self._moving = False
+        self._holding = False
+
+    @property
+    def state(self) -> str:
+        """As the arm controller's: waiting (no intrinsics), idle, tracking or holding."""
+        if self.intrinsics is None:
+            return 'waiting'
+        if self._holding:
+            return 'holding'
+        return 'tracking' if self._accepted else 'idle'
+
+    @property
+    def newest_state_time(self) -> float | None:
+        """When the newest odometry was taken (None before any)."""
+        return self.yaw[-1][0] if self.yaw else None
 
     def set_intrinsics(self, intrinsics: Intrinsics) -> None:
         self.intrinsics = intrinsics
@@ -158,6 +176,7 @@ class BaseController:
         if t_now - self._last_accept > cfg.watchdog_timeout:
             self.pd.reset()
         self._last_capture, self._last_accept = t_capture, t_now
+        self._accepted, self._holding = True, False
         error, _ = angular_error(u, v, intr, camera_tilt=math.radians(cfg.camera_tilt_deg))
         heading = self._heading_at(t_capture)
         change, _ = self.pd.update((error, 0.0), t_capture, camera=(heading, 0.0))
@@ -200,6 +219,7 @@ class BaseController:
         if (self._moving and math.isfinite(t_now)
                 and t_now - self._last_accept > self.config.watchdog_timeout):
             self.pd.reset()
+            self._holding = True
             return self.hold(t_now)
         return None
 
@@ -213,6 +233,8 @@ class BaseController:
             twist = self.discrete(twist)
         self._moving = twist != Twist()
         self.commands += 1
+        if stamp is not None:
+            self.latency.add(t_now - stamp)
         return BaseCommand(twist, t_now, reason, stamp)
 
     def discrete(self, twist: Twist) -> Twist:

@@ -7,6 +7,8 @@ from dataclasses import dataclass
 import math
 from typing import Sequence
 
+import numpy as np
+
 from activeloc_ros.errors import ConfigError
 
 _RADIAL_MODELS = ('plumb_bob', 'rational_polynomial')
@@ -56,6 +58,11 @@ class Intrinsics:
         dist = tuple(float(c) for c in d) if distortion_model in _RADIAL_MODELS else ()
         return cls(float(k[0]), float(k[4]), float(k[2]), float(k[5]), int(width), int(height),
                    dist, binning_x or 1, binning_y or 1, *(int(r) for r in roi))
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """The 3x3 camera matrix K."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     @property
     def image_size(self) -> tuple[float, float]:

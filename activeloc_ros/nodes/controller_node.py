@@ -1,4 +1,5 @@
-"""Reactive camera control (paper Sec. 3.3): action location -> PD -> Braccio joint commands.
+"""Reactive camera control (paper Sec. 3.3): action location -> PD -> Braccio joint commands,
+or, with ``actuator: base``, velocity commands for a mobile base (the tracking world).
 
 Subscribes ``action_location`` (PointStamped: pixel x, y and the surprise peak in z; header
 of the source frame), ``camera/camera_info`` and ``joint_states``; publishes
@@ -11,11 +12,17 @@ location gets an answer a lockstep simulation can wait for. The maths is
 On simulated time (lockstep) a location waits for the arm's state at its stamp, which may
 reach this node after it: the controller then knows the camera's pose at capture, as
 ``closed_loop``'s controller does.
+
+With ``actuator: base`` (`control.base`) it subscribes ``odom`` (nav_msgs/Odometry) in place
+of ``joint_states`` and ``action_region`` (the box of what is at the location, for the
+forward rule), and publishes ``cmd_vel`` (geometry_msgs/Twist) in place of
+``joint_commands``.
 """
 import math
 import threading
 
-from geometry_msgs.msg import PointStamped
+from geometry_msgs.msg import PointStamped, PolygonStamped, Twist
+from nav_msgs.msg import Odometry
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -24,10 +31,11 @@ from sensor_msgs.msg import CameraInfo, JointState
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
 from activeloc_ros.control import (
     ControllerConfig, Intrinsics, PD_VARIANTS, PDConfig, PDController, ReactiveController)
+from activeloc_ros.control.base import ACTION_SETS, BaseConfig, BaseController, FORWARD_RULES
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.pd import DERIVATIVE_MODES
 from activeloc_ros.errors import ConfigError
-from activeloc_ros.nodes.messages import arm_joints_deg, joint_state, stamp_s
+from activeloc_ros.nodes.messages import arm_joints_deg, joint_state, stamp_ns, stamp_s
 from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
 from activeloc_ros.nodes.settings import MAPPING_PARAMS, mapping_from
 
@@ -35,6 +43,8 @@ from activeloc_ros.nodes.settings import MAPPING_PARAMS, mapping_from
 # The gains, limits and filters apply at once when set at run time (ros2 param set); the
 # servo speed, the mapping and the report period are read-only. Defaults are the core's.
 PARAMS = (
+    Param('actuator', 'arm', "what the commands move: 'arm' (the Braccio: joint_commands) or "
+          "'base' (a mobile base: cmd_vel)", one_of('arm', 'base'), read_only=True),
     Param('pd_variant', '', 'A PD variant of the paper (Table 3) overriding kp/kd: '
           + ', '.join(f'{k}={v}' for k, v in PD_VARIANTS.items()) + '; empty uses kp/kd',
           one_of('', *PD_VARIANTS)),
@@ -64,6 +74,22 @@ PARAMS = (
     Param('step_delay_ms', 20, 'Servo step delay, ms per degree (sets the speed limit; must '
           "match the arm's)", in_range(*STEP_DELAY_MS_RANGE), read_only=True),
     *MAPPING_PARAMS,
+    # the base (actuator: base; control.base)
+    Param('forward', BaseConfig.forward, 'base: how fast to go forward: ' + ', '.join(
+        FORWARD_RULES) + ' (control.base)', one_of(*FORWARD_RULES)),
+    Param('distance', BaseConfig.distance, 'base: distance to keep, m', positive),
+    Param('distance_gain', BaseConfig.distance_gain,
+          'base: forward speed per metre of distance error, 1/s', non_negative),
+    Param('pace', BaseConfig.pace, 'base: forward speed of the constant rule, m/s',
+          non_negative),
+    Param('max_speed', BaseConfig.max_speed, 'base: top forward speed, m/s', positive),
+    Param('max_turn_deg_s', BaseConfig.max_turn_deg_s, 'base: top turn rate, deg/s', positive),
+    Param('camera_height', BaseConfig.camera_height, "base: the camera's height, m",
+          positive),
+    Param('camera_tilt_deg', BaseConfig.camera_tilt_deg,
+          "base: the camera's tilt above the horizon, degrees", in_range(-89.0, 89.0)),
+    Param('actions', BaseConfig.actions, "base: 'continuous' or AD-VAT's seven 'discrete' "
+          'actions', one_of(*ACTION_SETS)),
     Param('latency_report_period', 10.0, 'Log frame-to-command latency p50/p95 every this '
           'many seconds (0: only at shutdown)', non_negative, read_only=True),
 )
@@ -86,6 +112,17 @@ def config_from(values: dict) -> ControllerConfig:
                             tilt_limit_deg=values['tilt_limit_deg'])
 
 
+def base_config_from(values: dict) -> BaseConfig:
+    """The base controller's config from validated parameter values (raises ConfigError)."""
+    arm = config_from(values)
+    return BaseConfig(pd=arm.pd, watchdog_timeout=arm.watchdog_timeout, min_peak=arm.min_peak,
+                      **{name: values[name] for name in BASE_PARAMS})
+
+
+BASE_PARAMS = ('forward', 'distance', 'distance_gain', 'pace', 'max_speed', 'max_turn_deg_s',
+               'camera_height', 'camera_tilt_deg', 'actions')
+
+
 def check_change(values: dict, changed: set) -> 'str | None':
     """Refuse a run-time change that would be accepted but have no effect, or a set of
     values the core refuses."""
@@ -94,7 +131,7 @@ def check_change(values: dict, changed: set) -> 'str | None':
         return (f'{", ".join(ignored)} would have no effect: pd_variant '
                 f'{values["pd_variant"]!r} sets the gains; set pd_variant to \'\' with them')
     try:
-        config_from(values)
+        base_config_from(values) if values['actuator'] == 'base' else config_from(values)
     except ConfigError as exc:
         return str(exc)
     return None
@@ -107,9 +144,14 @@ class ControllerNode(Node):
         values = declare(self, PARAMS, cli_args=kwargs.get('cli_args'),
                          use_global_arguments=kwargs.get('use_global_arguments', True),
                          check_all=check_change, on_change=self.on_parameters)
-        self.config = config_from(values)
-        # on a simulated clock (lockstep) this is 0, as in closed_loop
-        self.core = ReactiveController(self.config, t0=self._now())
+        self.base = values['actuator'] == 'base'
+        # on a simulated clock (lockstep) t0 is 0, as in closed_loop
+        if self.base:
+            self.config = base_config_from(values)
+            self.core = BaseController(self.config, t0=self._now())
+        else:
+            self.config = config_from(values)
+            self.core = ReactiveController(self.config, t0=self._now())
         self.sim_time = self.get_parameter('use_sim_time').value
         self._state = self.core.state
         self._ignored_logged = 0
@@ -117,19 +159,27 @@ class ControllerNode(Node):
         self._lock = threading.Lock()  # stop_on_purpose may come from another thread
         self.stopped = False
         self._early: PointStamped | None = None   # simulated time: ahead of the arm's state
+        self._regions: dict[int, tuple] = {}       # base: stamp (ns) -> box of the location
 
         # Best effort hears any publisher (a camera driver's sensor QoS); in simulated time
         # (lockstep, our own reliable publishers) every location and arm state counts.
         inputs = ReliabilityPolicy.RELIABLE if self.sim_time else ReliabilityPolicy.BEST_EFFORT
         sensor = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
         commands = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
-        self.publisher = self.create_publisher(JointState, 'joint_commands', commands)
         self.ignored_pub = self.create_publisher(PointStamped, 'action_location/ignored', 10)
         self.create_subscription(PointStamped, 'action_location', self.on_location,
                                  QoSProfile(depth=1, reliability=inputs))
         self.create_subscription(CameraInfo, 'camera/camera_info', self.on_camera_info, sensor)
-        self.create_subscription(JointState, 'joint_states', self.on_joint_states,
-                                 QoSProfile(depth=10, reliability=inputs))
+        if self.base:
+            self.publisher = self.create_publisher(Twist, 'cmd_vel', commands)
+            self.create_subscription(Odometry, 'odom', self.on_odom,
+                                     QoSProfile(depth=10, reliability=inputs))
+            self.create_subscription(PolygonStamped, 'action_region', self.on_region,
+                                     QoSProfile(depth=10, reliability=inputs))
+        else:
+            self.publisher = self.create_publisher(JointState, 'joint_commands', commands)
+            self.create_subscription(JointState, 'joint_states', self.on_joint_states,
+                                     QoSProfile(depth=10, reliability=inputs))
         self.create_timer(0.05, self.on_watchdog)
         if values['latency_report_period'] > 0:
             self.create_timer(values['latency_report_period'], self.report_latency)
@@ -139,16 +189,19 @@ class ControllerNode(Node):
     def _log_config(self, then: str) -> None:
         pd, c = self.config.pd, self.config
         variant = self.get_parameter('pd_variant').value
+        limits = (f'base: forward {c.forward}, distance {c.distance:g} m, top speed '
+                  f'{c.max_speed:g} m/s and {c.max_turn_deg_s:g} deg/s, {c.actions} actions'
+                  if self.base else
+                  f'aim limits pan {c.pan_limit_deg:g} tilt {c.tilt_limit_deg:g} deg')
         self.get_logger().info(
             f'PD kp={pd.kp} kd={pd.kd} ({pd.derivative}'
             + (f", pd_variant {variant!r} sets the gains" if variant else '')
             + f'), dead band {math.degrees(pd.dead_band):g} deg, watchdog '
-            f'{c.watchdog_timeout} s, aim limits pan {c.pan_limit_deg:g} tilt '
-            f'{c.tilt_limit_deg:g} deg; {then}')
+            f'{c.watchdog_timeout} s, {limits}; {then}')
 
     def on_parameters(self, values: dict, changed: set) -> None:
         """A run-time change, validated by check_change: the next command uses it."""
-        config = config_from(values)
+        config = base_config_from(values) if self.base else config_from(values)
         with self._lock:
             if config.pd != self.config.pd:
                 self.core.pd = PDController(config.pd)  # no derivative across the change
@@ -197,6 +250,30 @@ class ControllerNode(Node):
             return
         t = stamp_s(msg.header.stamp) or self._now()
         self.core.observe(joints, t)
+        self._answer_early()
+
+    def on_odom(self, msg: Odometry) -> None:
+        """The base's pose (x, y, heading) at the message's stamp."""
+        q = msg.pose.pose.orientation
+        heading = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+        with self._lock:
+            self.core.observe((msg.pose.pose.position.x, msg.pose.pose.position.y, heading),
+                              stamp_s(msg.header.stamp) or self._now())
+            self._answer_early()
+
+    def on_region(self, msg: PolygonStamped) -> None:
+        """The box (two corners, px) of what is at the location of the same stamp."""
+        points = msg.polygon.points
+        if len(points) == 2:
+            box = (points[0].x, points[0].y, points[1].x - points[0].x,
+                   points[1].y - points[0].y)
+            with self._lock:
+                self._regions[stamp_ns(msg.header.stamp)] = box
+                while len(self._regions) > 20:
+                    del self._regions[min(self._regions)]
+                self._answer_early()
+
+    def _answer_early(self) -> None:
         if self._early is not None and self._pose_known(self._early) and not self.stopped:
             early, self._early = self._early, None
             self._answer(early)
@@ -215,8 +292,16 @@ class ControllerNode(Node):
         self._log_ignored()
 
     def _pose_known(self, msg: PointStamped) -> bool:
-        newest = self.core.history.newest
-        return newest is not None and newest[0] >= stamp_s(msg.header.stamp)
+        """Simulated time: is what the answer to ``msg`` needs here? The actuator's state at
+        its stamp, and for a base the location's region (published before it, but DDS keeps
+        no order between topics)."""
+        if self.base:
+            newest = self.core.newest_state_time
+            if stamp_ns(msg.header.stamp) not in self._regions:
+                return False
+        else:
+            newest = self.core.history.newest[0] if self.core.history.newest else None
+        return newest is not None and newest >= stamp_s(msg.header.stamp)
 
     def _answer(self, msg: PointStamped) -> None:
         """A command, or the location on action_location/ignored."""
@@ -226,10 +311,11 @@ class ControllerNode(Node):
             # the frame's clock tick may reach this node after its location; in
             # simulated time a command is never made before its frame (closed_loop)
             now = max(now, t_capture)
+        box = self._regions.pop(stamp_ns(msg.header.stamp), None)
         command = self.core.on_location(msg.point.x, msg.point.y, t_capture, now,
-                                        peak=msg.point.z)
+                                        peak=msg.point.z, box=box)
         if command is not None:        # its own, the watchdog's hold or a move's rest
-            self._publish(command.joints_deg, msg.header.stamp)
+            self._publish(command, msg.header.stamp)
         if command is None or command.reason != 'track':
             self.ignored_pub.publish(msg)
 
@@ -237,13 +323,18 @@ class ControllerNode(Node):
         with self._lock:
             command = None if self.stopped else self.core.tick(self._now())
             if command is not None:
-                self._publish(command.joints_deg, self.get_clock().now().to_msg())
+                self._publish(command, self.get_clock().now().to_msg())
         self._log_state()
 
     # -- outputs ---------------------------------------------------------------------------
 
-    def _publish(self, joints_deg, stamp) -> None:
-        self.publisher.publish(joint_state(joints_deg, stamp))
+    def _publish(self, command, stamp) -> None:
+        if self.base:
+            twist = Twist()
+            twist.linear.x, twist.angular.z = command.twist.forward, command.twist.turn
+            self.publisher.publish(twist)
+        else:
+            self.publisher.publish(joint_state(command.joints_deg, stamp))
 
     def stop_on_purpose(self) -> None:
         """Stop the arm where it is, on purpose, make sure the command went out, and send
@@ -251,9 +342,10 @@ class ControllerNode(Node):
         with self._lock:
             self.stopped = True
             command = self.core.hold(self._now())
-            self._publish(command.joints_deg, self.get_clock().now().to_msg())
+            self._publish(command, self.get_clock().now().to_msg())
         self.publisher.wait_for_all_acked(Duration(seconds=0.5))
-        self.get_logger().info('stopped: arm told to hold '
+        self.get_logger().info('stopped: base told to stop' if self.base else
+                               'stopped: arm told to hold '
                                + ', '.join(f'{q:.0f}' for q in command.joints_deg))
         self.report_latency()
 

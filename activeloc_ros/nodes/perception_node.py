@@ -8,8 +8,11 @@ loses no large frame on the way. Publishes
 `surprise_map` (std_msgs/Float32MultiArray, 14 rows x 14 cols), `surprise_map/image` (the
 same map as a 32FC1 sensor_msgs/Image with the frame's header), `surprise_map/overlay`
 (the frame with the map blended on it), `action_location` (geometry_msgs/PointStamped:
-pixel x, y of the action in the camera image, z = the map's peak; the frame's header) and
-its health on `/diagnostics` (maps/s, latency, dropped and skipped frames).
+pixel x, y of the action in the camera image, z = the map's peak; the frame's header),
+before it `action_region` (geometry_msgs/PolygonStamped: the top-left and bottom-right
+corners, px, of the map's blob round its peak, `metrics.blob_box`; a mobile base reads how
+far the action is from it) and its health on `/diagnostics` (maps/s, latency, dropped and
+skipped frames).
 
     ros2 run activeloc_ros perception_node --ros-args --params-file params/perception.yaml
 """
@@ -20,7 +23,7 @@ import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PointStamped
+from geometry_msgs.msg import Point32, PointStamped, PolygonStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -28,6 +31,7 @@ from rclpy.time import Time
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Float32MultiArray, Header, MultiArrayDimension
 
+from activeloc_ros import metrics
 from activeloc_ros.checks import in_range, one_of, positive
 from activeloc_ros.errors import FrameError
 from activeloc_ros.images import (decode_compressed, float_image_fields, image_to_rgb, overlay,
@@ -117,6 +121,7 @@ class PerceptionNode(Node):
         self.map_image_pub = self.create_publisher(Image, 'surprise_map/image', 10)
         self.overlay_pub = self.create_publisher(Image, 'surprise_map/overlay', overlay_qos)
         self.location_pub = self.create_publisher(PointStamped, 'action_location', 10)
+        self.region_pub = self.create_publisher(PolygonStamped, 'action_region', 10)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         choice = self.params['image_reliability']
         self.sub = self._subscribe(RELIABILITY.get(choice, ReliabilityPolicy.RELIABLE))
@@ -207,6 +212,14 @@ class PerceptionNode(Node):
         self.map_pub.publish(map_message(result.surprise_map))
         self.map_image_pub.publish(Image(header=header,
                                          **float_image_fields(result.surprise_map)))
+        height, width = rgb.shape[:2]
+        box = metrics.blob_box(result.surprise_map, (width, height))
+        if box is not None:
+            x, y, w, h = box
+            region = PolygonStamped(header=header)
+            region.polygon.points = [Point32(x=float(x), y=float(y)),
+                                     Point32(x=float(x + w), y=float(y + h))]
+            self.region_pub.publish(region)
         location = PointStamped(header=header)
         location.point.x, location.point.y = (float(v) for v in result.location_px)
         location.point.z = float(result.peak) if math.isfinite(result.peak) else 0.0

@@ -227,7 +227,8 @@ class TrackingWorld:
         for start, end in zip(marks, marks[1:]):
             twist = [tw for w, tw in self._twists if w <= start][-1]
             self._drive(twist, end - start)
-        self._twists = [(w, tw) for w, tw in self._twists if w >= t] or [self._twists[-1]]
+        now = [(w, tw) for w, tw in self._twists if w <= t][-1]     # the one in effect at t
+        self._twists = [now, *((w, tw) for w, tw in self._twists if w > t)]
         dt = t - self._moved_to
         if dt > 0:
             base = [(self.base.x, self.base.y, 0.5)]
@@ -286,15 +287,21 @@ class TrackingWorld:
         bearing = math.remainder(math.atan2(dy, dx) - self.base.heading, math.tau)
         return math.hypot(dx, dy), bearing
 
-    def score(self, record, newest_map=None, canvas=None) -> None:
-        """The step's reward (AD-VAT's), bearing error as AAE, and whether the target is in
-        view; counts the steps the target has been lost in a row."""
+    def score_step(self) -> tuple[float, float, float]:
+        """Score the step now: AD-VAT's reward, relaxed reward and the bearing (rad); counts
+        the steps the target has been lost in a row."""
         distance, bearing = self.relative()
         r = rewards.reward(distance, bearing, rho=self.config.start_distance)
         relaxed = rewards.reward_relaxed(distance, bearing, rho=self.config.start_distance)
         self.rewards.append(r)
         self.rewards_relaxed.append(relaxed)
         self.lost_run = self.lost_run + 1 if r <= rewards.LOST else 0
+        return r, relaxed, bearing
+
+    def score(self, record, newest_map=None, canvas=None) -> None:
+        """Fill ``record`` with the step's scores (`score_step`), the bearing error as AAE,
+        whether the target is in view and where the base and the target are."""
+        r, relaxed, bearing = self.score_step()
         record.scored = True
         record.aae_deg = abs(math.degrees(bearing))
         record.in_view = self.view is not None and self.view.truth_box is not None
@@ -306,10 +313,10 @@ class TrackingWorld:
         return rewards.score(self.rewards, self.rewards_relaxed, self.config.max_steps)
 
     def close(self) -> None:
-        try:
+        """Free the physics client and the textures (twice is harmless)."""
+        if self.client is not None:
             self.client.disconnect()
-        except Exception:  # noqa: B902 - already disconnected
-            pass
+            self.client = None
         self._folder.cleanup()
 
     def __enter__(self) -> 'TrackingWorld':

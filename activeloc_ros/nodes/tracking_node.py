@@ -1,0 +1,278 @@
+"""Tracking world node: the simulated active-tracking world (`tracking.world.TrackingWorld`,
+paper Sec. 4.1) in the graph.
+
+    ros2 run activeloc_ros tracking_node --ros-args -p scene:=room -p seed:=3
+
+A person walks ahead of a mobile base that carries a camera, in one of the seeded pybullet
+scenes (room, urban, snow, parking). The node owns the world: it moves the base at
+``cmd_vel`` (geometry_msgs/Twist: linear.x m/s forward, angular.z rad/s, left positive),
+and publishes ``camera/image_raw``, ``camera/camera_info``, ``odom`` (nav_msgs/Odometry of
+the base in the world frame) and ``target/position`` (geometry_msgs/PointStamped: where the
+target really is, for recording), all stamped with the step's time. The episode ends as the
+benchmark's does (`tracking.reward`: 500 steps, or the target lost for 10 in a row); the log
+then gives its AD-VAT scores.
+
+In real time the world steps at its control rate (10 Hz, times ``rate``). With ``lockstep``
+(and ``use_sim_time`` on every node) it owns ``/clock`` and steps the graph one control step
+at a time as ``closed_loop`` does (`activeloc_ros.nodes.lockstep`; the base's state is
+``odom``, and a ``cmd_vel`` that comes once the step's frame is out answers it).
+"""
+import math
+import threading
+import time
+
+from geometry_msgs.msg import PointStamped, Twist
+from nav_msgs.msg import Odometry
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock as ClockMsg
+from sensor_msgs.msg import CameraInfo, Image
+
+from activeloc_ros.checks import in_range, non_negative, one_of, positive
+from activeloc_ros.control.base import Twist as BaseTwist
+from activeloc_ros.images import rgb_to_image_fields
+from activeloc_ros.nodes.lockstep import ANSWER, Lockstep
+from activeloc_ros.nodes.messages import camera_info, stamp_ns, time_from_ns
+from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
+from activeloc_ros.tracking.scenes import SCENES
+from activeloc_ros.tracking.world import TARGETS, TrackingConfig, TrackingWorld
+
+PARAMS = [
+    Param('scene', 'room', f'the scene: {", ".join(SCENES)}', one_of(*SCENES),
+          read_only=True),
+    Param('seed', 0, 'the episode seed (the benchmark runs episode e of seed S as '
+          '1000 * S + e)', non_negative, read_only=True),
+    Param('target', 'nav', "the target's behaviour, gym-unrealcv's Nav or Ram",
+          one_of(*TARGETS), read_only=True),
+    Param('max_steps', 500, 'the longest episode, control steps', in_range(1, 1000000),
+          read_only=True),
+    Param('lost_steps', 10, 'steps in a row with the target lost that end the episode '
+          '(paper 10; gym-unrealcv 20)', in_range(1, 1000000), read_only=True),
+    Param('rate', 1.0, 'real time: speed of the world (1.0 = its own)', positive),
+    Param('encoding', 'rgb8', 'encoding of published images', one_of('rgb8', 'bgr8')),
+    Param('frame_id', 'camera_color_optical_frame', 'frame_id of published images'),
+    Param('world_frame', 'world', 'frame of odom and target/position'),
+    Param('wait_for_subscriber', 120.0, 'seconds to wait for a subscriber (lockstep: for the '
+          'whole graph) before the first step (0: do not wait)', non_negative),
+    Param('min_subscribers', 1, 'image subscribers to wait for before the first step '
+          '(bringup --record: 2)', in_range(1, 1000)),
+    Param('lockstep', False, 'step the graph on a simulated /clock this node publishes, as '
+          'closed_loop does (needs use_sim_time on every node)', read_only=True),
+    Param('lockstep_timeout', 60.0, "lockstep: longest wait for perception's location, s",
+          positive, read_only=True),
+    Param('lockstep_command_timeout', 5.0, "lockstep: longest wait for the odometry's echo "
+          "and for the controller's answer to an action location, s (longer than the DDS "
+          'heartbeat period, Fast DDS 3 s)', positive, read_only=True),
+]
+
+
+class TrackingNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__('tracking', **kwargs)
+        self.params = declare(self, PARAMS, cli_args=kwargs.get('cli_args'),
+                              use_global_arguments=kwargs.get('use_global_arguments', True),
+                              on_change=self.on_parameters)
+        p = self.params
+        self.sim_time = self.get_parameter('use_sim_time').value
+        if p['lockstep'] != self.sim_time:
+            from activeloc_ros.errors import ConfigError
+            raise ConfigError('lockstep runs the graph on simulated time this node owns: set '
+                              'lockstep:=true and use_sim_time:=true together')
+        config = TrackingConfig(target=p['target'], max_steps=p['max_steps'],
+                                lost_steps=p['lost_steps'])
+        self.world = TrackingWorld(p['scene'], p['seed'], config)
+        self.steps = self.world.times()
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.image_pub = self.create_publisher(Image, 'camera/image_raw', reliable)
+        self.info_pub = self.create_publisher(CameraInfo, 'camera/camera_info', 10)
+        self.odom_pub = self.create_publisher(Odometry, 'odom', reliable)
+        self.target_pub = self.create_publisher(PointStamped, 'target/position', reliable)
+        self.command_sub = self.create_subscription(Twist, 'cmd_vel', self.on_command, reliable)
+        self.lockstep = None
+        if p['lockstep']:
+            self.lockstep = Lockstep(timeout=p['lockstep_timeout'],
+                                     command_timeout=p['lockstep_command_timeout'])
+            self.clock_pub = self.create_publisher(ClockMsg, '/clock', reliable)
+            self.location_sub = self.create_subscription(
+                PointStamped, 'action_location', self.on_location, reliable)
+            self.ignored_sub = self.create_subscription(
+                PointStamped, 'action_location/ignored', self.on_ignored, reliable)
+            self.create_subscription(Odometry, 'odom', self.on_odom, reliable)
+        self.published = 0
+        self.rejected = 0
+        self.finished = False
+        self.due = 0.0                    # real time: when the next step is due (monotonic)
+        self.started_at = time.monotonic()
+        self._lock = threading.Lock()
+        self._closed = False
+        self.waiting = p['wait_for_subscriber'] > 0
+        self.timer = self.create_timer(0.005, self.tick,
+                                       clock=Clock(clock_type=ClockType.STEADY_TIME))
+        mode = 'lockstep' if p['lockstep'] else 'real time'
+        self.get_logger().info(f'tracking world {p["scene"]} seed {p["seed"]}, target '
+                               f'{p["target"]} ({mode}, {1 / config.step:g} steps/s)')
+
+    def on_parameters(self, values: dict, changed: set) -> None:
+        changed = changed & values.keys()
+        self.params.update({name: values[name] for name in changed})
+        self.get_logger().info('set at run time: ' + ', '.join(
+            f'{name} {values[name]!r}' for name in sorted(changed)))
+
+    # -- inputs ----------------------------------------------------------------------------
+
+    def on_command(self, msg: Twist) -> None:
+        twist = BaseTwist(msg.linear.x, msg.angular.z)
+        with self._lock:
+            if not (math.isfinite(twist.forward) and math.isfinite(twist.turn)):
+                self.rejected += 1
+                self.get_logger().warning(f'ignored a cmd_vel that is not finite '
+                                          f'({self.rejected} so far)', throttle_duration_sec=5.0)
+                return
+            if self._closed:
+                return
+            self.world.act(twist, self.world.t if self.lockstep else self._wall())
+            if self.lockstep is not None and self.lockstep.phase == ANSWER:
+                # a Twist has no stamp: a command once the frame is out answers it (DDS may
+                # bring it before this node hears the location it answers)
+                self.lockstep.on_command(self.lockstep.t_ns)
+
+    def on_location(self, msg: PointStamped) -> None:
+        with self._lock:
+            self.lockstep.on_location(stamp_ns(msg.header.stamp), time.monotonic())
+
+    def on_ignored(self, msg: PointStamped) -> None:
+        with self._lock:
+            self.lockstep.on_ignored(stamp_ns(msg.header.stamp))
+
+    def on_odom(self, msg: Odometry) -> None:
+        with self._lock:
+            self.lockstep.on_state(stamp_ns(msg.header.stamp))
+
+    # -- stepping --------------------------------------------------------------------------
+
+    def _wall(self) -> float:
+        """Real time: the world's seconds since its first step, at the set rate."""
+        return (time.monotonic() - self.started_at) * self.params['rate']
+
+    def tick(self) -> None:
+        with self._lock:
+            if self._closed or self.finished or (self.waiting and not self._ready()):
+                return
+            if self.lockstep is not None:
+                self._lockstep_tick()
+            elif time.monotonic() >= self.due:
+                self.due = time.monotonic() + self.world.config.step / self.params['rate']
+                if self._step():
+                    self.world.advance(self.world.t)
+                    self._publish_odom(self.get_clock().now().to_msg())
+                    self.publish(self.get_clock().now().to_msg())
+                    self.world.score_step()
+
+    def _step(self) -> bool:
+        """The next control step (the world's time moves on); False at the episode's end."""
+        if next(self.steps, None) is None:
+            self._finish()
+            return False
+        return True
+
+    def _lockstep_tick(self) -> None:
+        step, now = self.lockstep, time.monotonic()
+        action = step.poll(now)
+        if action == 'render':
+            self.publish(time_from_ns(step.t_ns))
+            step.rendered(now)
+            return
+        if action != 'next':
+            return
+        if self.published:
+            self.world.score_step()
+        if not self._step():
+            return
+        t_ns = round(self.world.t * 1e9)
+        stamp = time_from_ns(t_ns)
+        self.clock_pub.publish(ClockMsg(clock=stamp))
+        self.world.advance(self.world.t)
+        self._publish_odom(stamp)
+        step.begin(t_ns, now)
+
+    def _publish_odom(self, stamp) -> None:
+        base = self.world.base
+        odom = Odometry()
+        odom.header.stamp = stamp
+        odom.header.frame_id = self.params['world_frame']
+        odom.child_frame_id = 'base_link'
+        odom.pose.pose.position.x, odom.pose.pose.position.y = base.x, base.y
+        odom.pose.pose.orientation.z = math.sin(base.heading / 2)
+        odom.pose.pose.orientation.w = math.cos(base.heading / 2)
+        self.odom_pub.publish(odom)
+
+    def publish(self, stamp) -> None:
+        """Render the camera's view now and publish it with the target's true position."""
+        view = self.world.observe()
+        height, width = view.rgb.shape[:2]
+        image = Image(**rgb_to_image_fields(view.rgb, self.params['encoding']))
+        image.header.stamp = stamp
+        image.header.frame_id = self.params['frame_id']
+        self.image_pub.publish(image)
+        self.info_pub.publish(camera_info(self.world.intrinsics.matrix, width, height,
+                                          image.header))
+        target = PointStamped()
+        target.header.stamp = stamp
+        target.header.frame_id = self.params['world_frame']
+        target.point.x, target.point.y = self.world.target.x, self.world.target.y
+        self.target_pub.publish(target)
+        self.published += 1
+        if self.published == 1:
+            self.get_logger().info(f'first frame published ({width}x{height})')
+
+    def _ready(self) -> bool:
+        images = self.image_pub.get_subscription_count() >= self.params['min_subscribers']
+        if self.lockstep is not None:
+            ready = (images and self.command_sub.get_publisher_count() > 0
+                     and self.ignored_sub.get_publisher_count() > 0
+                     and self.location_sub.get_publisher_count() > 0)
+        else:
+            ready = images
+        if ready:
+            self.get_logger().info('the graph is up: the episode starts')
+        elif time.monotonic() - self.started_at > self.params['wait_for_subscriber']:
+            self.get_logger().warning(f'no subscriber after '
+                                      f'{self.params["wait_for_subscriber"]:g} s: the episode '
+                                      'starts')
+        else:
+            return False
+        self.waiting = False
+        self.started_at = time.monotonic()
+        return True
+
+    def _finish(self) -> None:
+        self.finished = True
+        self.timer.cancel()
+        s = self.world.episode_score()
+        self.get_logger().info(
+            f'episode over after {s.length} steps: recall {s.recall:.2f}, precision '
+            f'{s.precision:.2f} (relaxed {s.precision_relaxed:.2f}), reward {s.reward:.1f}')
+        if self.lockstep is not None and self.lockstep.missed:
+            self.get_logger().warning('lockstep timeouts: ' + ', '.join(
+                f'{kind}: {n}' for kind, n in sorted(self.lockstep.missed.items())))
+
+    def destroy_node(self):
+        with self._lock:
+            self._closed = True
+            self.world.close()
+        return super().destroy_node()
+
+
+def stop(node: TrackingNode) -> None:
+    if not node.finished:
+        node.get_logger().info(f'stopped: {node.published} frames published')
+
+
+def main(args=None) -> int:
+    return run(TrackingNode, args, on_stop=stop,
+               help_text=lambda: node_help('tracking_node', __doc__, PARAMS))
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
