@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import math
 from typing import Iterable, Sequence
 
+import cv2
 import numpy as np
 
 from activeloc_ros.errors import DataError
@@ -112,7 +113,6 @@ def blob_box(heatmap: np.ndarray, image_wh: tuple[float, float], *,
     peak = float(m.max()) if m.size else 0.0
     if not (math.isfinite(peak) and peak > 0):
         return None
-    import cv2
     _, labels = cv2.connectedComponents((m >= share * peak).astype(np.uint8), connectivity=4)
     rows, cols = np.nonzero(labels == labels[peak_cell(m)])
     cw, ch = cell_size(m.shape, image_wh)

@@ -219,3 +219,13 @@ def test_summarise_drops_nan():
     assert (s.n, s.mean) == (2, 2.0)
     assert s.std == pytest.approx(math.sqrt(2))
     assert metrics.summarise([]).n == 0
+
+
+def test_blob_box_is_the_peak_cells_connected_blob():
+    heat = np.zeros((14, 14))
+    heat[3:6, 4:6] = 1.0           # the blob round the peak
+    heat[4, 5] = 2.0
+    heat[10, 10] = 1.5             # as strong, but apart
+    x, y, w, h = metrics.blob_box(heat, (140, 280))
+    assert (x, y, w, h) == (40.0, 60.0, 20.0, 60.0)
+    assert metrics.blob_box(np.zeros((14, 14)), (140, 280)) is None
