@@ -61,10 +61,10 @@ def test_base_ignores_a_map_without_information_and_stops_when_locations_stop():
     assert ctl.on_location(300, 120, 0.1, 0.1, peak=1 / 196) is None
     assert ctl.ignored == {'weak or bad peak': 1}
     assert ctl.on_location(300, 120, 0.2, 0.2, box=(150, 60, 30, 90)).twist != Twist()
-    assert ctl.tick(0.5) is None
-    stop = ctl.tick(1.5)
+    assert ctl.tick(1.5) is None
+    stop = ctl.tick(2.5)                                    # 2 s without a location
     assert stop.twist == Twist() and stop.reason == 'hold'
-    assert ctl.tick(1.6) is None                            # once
+    assert ctl.tick(2.6) is None                            # once
 
 
 def test_ground_rule_reads_the_distance_from_the_box_foot():

@@ -70,7 +70,7 @@ class BaseConfig:
     pace: float = 1.0
     size_frames: int = 5
     min_peak: float = 0.0102
-    watchdog_timeout: float = 1.0
+    watchdog_timeout: float = 2.0
     actions: str = 'continuous'
     discrete_speed: float = 1.0
     discrete_turn_deg_s: float = 30.0

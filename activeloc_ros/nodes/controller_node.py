@@ -112,15 +112,16 @@ def config_from(values: dict) -> ControllerConfig:
                             tilt_limit_deg=values['tilt_limit_deg'])
 
 
+BASE_PARAMS = ('forward', 'distance', 'distance_gain', 'pace', 'max_speed', 'max_turn_deg_s',
+               'camera_height', 'camera_tilt_deg', 'actions')
+
+
 def base_config_from(values: dict) -> BaseConfig:
-    """The base controller's config from validated parameter values (raises ConfigError)."""
+    """The base controller's config from validated parameter values (raises ConfigError):
+    the PD, watchdog and information rule the arm's would have, and the base's own."""
     arm = config_from(values)
     return BaseConfig(pd=arm.pd, watchdog_timeout=arm.watchdog_timeout, min_peak=arm.min_peak,
                       **{name: values[name] for name in BASE_PARAMS})
-
-
-BASE_PARAMS = ('forward', 'distance', 'distance_gain', 'pace', 'max_speed', 'max_turn_deg_s',
-               'camera_height', 'camera_tilt_deg', 'actions')
 
 
 def check_change(values: dict, changed: set) -> 'str | None':
