@@ -1,7 +1,10 @@
 """Benchmarks: `python -m activeloc_ros.bench {perception,passive,screen,...} --help`."""
 import argparse
 import json
+import multiprocessing
 from pathlib import Path
+import signal
+from typing import Callable, Iterator
 
 from activeloc_ros import data
 from activeloc_ros.errors import ConfigError
@@ -45,3 +48,38 @@ def load_selected(args: argparse.Namespace
                                              cameras=args.camera)
     sequences.sort(key=lambda s: (data.KIND_ORDER[s.camera_kind], s.name))
     return root, sequences, skipped
+
+
+def in_threads(run: Callable[[dict], dict], job: dict) -> dict:
+    """``run(job)`` with torch's and OpenCV's thread counts set to ``job['threads']`` (when
+    set), then back to the process's (with --jobs 1 that is the caller's process)."""
+    import cv2
+    import torch
+    before = torch.get_num_threads(), cv2.getNumThreads()
+    if job.get('threads'):
+        torch.set_num_threads(job['threads'])
+        cv2.setNumThreads(job['threads'])   # OpenCV's own pool would oversubscribe the cores
+    try:
+        return run(job)
+    finally:
+        torch.set_num_threads(before[0])
+        cv2.setNumThreads(before[1])
+
+
+def _ignore_sigint() -> None:
+    # workers: Ctrl-C reaches the whole process group; the parent alone handles it
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def run_jobs(run_job: Callable[[dict], dict], work: list[dict], *, jobs: int
+             ) -> Iterator[dict]:
+    """The results of ``run_job`` (a module-level function) over ``work``: in this process
+    for one job, else in ``jobs`` spawned worker processes, as they finish."""
+    if jobs == 1:
+        yield from map(run_job, work)
+        return
+    pool = multiprocessing.get_context('spawn').Pool(jobs, initializer=_ignore_sigint)
+    try:
+        yield from pool.imap_unordered(run_job, work)
+    finally:
+        pool.terminate()

@@ -16,10 +16,8 @@ import csv
 import io
 import json
 import math
-import multiprocessing
 import os
 from pathlib import Path
-import signal
 import sys
 import time
 import traceback
@@ -28,7 +26,8 @@ import cv2
 import numpy as np
 
 from activeloc_ros import data
-from activeloc_ros.bench import add_sequence_options, key_values, load_selected, names
+from activeloc_ros.bench import (
+    add_sequence_options, in_threads, key_values, load_selected, names, run_jobs)
 from activeloc_ros.bench.time_plots import time_plots
 from activeloc_ros.bench.video import H264Writer
 from activeloc_ros.bench.pointers import (
@@ -128,18 +127,8 @@ def _pointer(name: str, settings: dict, seed: int):
 
 def run_job(job: dict) -> dict:
     """Run one method on one sequence; returns its summary and per-frame records, or the
-    reason it failed (a bad sequence is a DataError). The thread counts it sets are the
-    process's again afterwards (with --jobs 1 that is the caller's process)."""
-    import torch
-    before = torch.get_num_threads(), cv2.getNumThreads()
-    if job.get('threads'):
-        torch.set_num_threads(job['threads'])
-        cv2.setNumThreads(job['threads'])   # OpenCV's own pool would oversubscribe the cores
-    try:
-        return _run_job(job)
-    finally:
-        torch.set_num_threads(before[0])
-        cv2.setNumThreads(before[1])
+    reason it failed (a bad sequence is a DataError)."""
+    return in_threads(_run_job, job)
 
 
 def _run_job(job: dict) -> dict:
@@ -265,11 +254,6 @@ class OverlayVideo:
             self.tmp.unlink(missing_ok=True)
 
 
-def _ignore_sigint() -> None:
-    # workers: Ctrl-C reaches the whole process group; the parent alone handles it
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
 # -- the whole benchmark ---------------------------------------------------------------------
 
 def evaluate(sequences: list[data.Sequence], methods: list[str], *, mode: str,
@@ -294,21 +278,11 @@ def evaluate(sequences: list[data.Sequence], methods: list[str], *, mode: str,
     progress = None if quiet else Progress(sum(length[Path(j['path']).name] for j in work),
                                            'screen frames')
     runs = []
-    if jobs == 1:
-        results = map(run_job, work)
-        pool = None
-    else:
-        pool = multiprocessing.get_context('spawn').Pool(jobs, initializer=_ignore_sigint)
-        results = pool.imap_unordered(run_job, work)
-    try:
-        for run in results:
-            runs.append(run)
-            if progress is not None:
-                progress.update(length[run['sequence']],
-                                note=f'{run["method"]} on {run["sequence"]}')
-    finally:
-        if pool is not None:
-            pool.terminate()
+    for run in run_jobs(run_job, work, jobs=jobs):
+        runs.append(run)
+        if progress is not None:
+            progress.update(length[run['sequence']],
+                            note=f'{run["method"]} on {run["sequence"]}')
     if progress is not None:
         progress.close()
     return summarise(runs, methods, sequences)

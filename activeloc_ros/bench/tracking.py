@@ -27,10 +27,8 @@ import csv
 import io
 import json
 import math
-import multiprocessing
 import os
 from pathlib import Path
-import signal
 import sys
 import time
 import traceback
@@ -38,7 +36,7 @@ import traceback
 import cv2
 import numpy as np
 
-from activeloc_ros.bench import key_values, names
+from activeloc_ros.bench import in_threads, key_values, names, run_jobs
 from activeloc_ros.bench.screen import method_parts, MODEL_METHODS, TRACKER_METHODS
 from activeloc_ros.bench.video import H264Writer
 from activeloc_ros.closed_loop import FrameRecord, MODES, Pointing, run_episode
@@ -209,16 +207,7 @@ _POINTERS: dict = {}   # per worker process: one pointer per method, its encoder
 
 def run_job(job: dict) -> dict:
     """Run one method on one episode; its scores, or the reason it failed."""
-    import torch
-    before = torch.get_num_threads(), cv2.getNumThreads()
-    if job.get('threads'):
-        torch.set_num_threads(job['threads'])
-        cv2.setNumThreads(job['threads'])
-    try:
-        return _run_job(job)
-    finally:
-        torch.set_num_threads(before[0])
-        cv2.setNumThreads(before[1])
+    return in_threads(_run_job, job)
 
 
 def _run_job(job: dict) -> dict:
@@ -258,10 +247,6 @@ def _run_job(job: dict) -> dict:
             'rewards': [round(r.reward, 4) for r in rows]}
 
 
-def _ignore_sigint() -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
 # -- the whole benchmark ---------------------------------------------------------------------
 
 def plan_jobs(scenes: list[str], methods: list[str], *, episodes: int, seed: int,
@@ -286,19 +271,10 @@ def plan_jobs(scenes: list[str], methods: list[str], *, episodes: int, seed: int
 def evaluate(work: list[dict], *, jobs: int, quiet: bool) -> list[dict]:
     progress = None if quiet else Progress(len(work), 'tracking episodes')
     runs = []
-    if jobs == 1:
-        results, pool = map(run_job, work), None
-    else:
-        pool = multiprocessing.get_context('spawn').Pool(jobs, initializer=_ignore_sigint)
-        results = pool.imap_unordered(run_job, work)
-    try:
-        for run in results:
-            runs.append(run)
-            if progress is not None:
-                progress.update(1, note=f'{run["method"]} {run["scene"]} #{run["episode"]}')
-    finally:
-        if pool is not None:
-            pool.terminate()
+    for run in run_jobs(run_job, work, jobs=jobs):
+        runs.append(run)
+        if progress is not None:
+            progress.update(1, note=f'{run["method"]} {run["scene"]} #{run["episode"]}')
     if progress is not None:
         progress.close()
     return runs
