@@ -160,10 +160,10 @@ class TrackingVideo:
         h, w = camera.shape[:2]
         frame = cv2.cvtColor(camera, cv2.COLOR_RGB2BGR)
         last = self.pointer.last
-        if last is not None and last.heat is not None:
+        if last is not None and last.heat is not None and np.ptp(last.heat) > 0:
             heat = cv2.resize(np.asarray(last.heat, np.float32), (w, h),
                               interpolation=cv2.INTER_NEAREST)
-            heat = heat / max(float(heat.max()), 1e-9)         # (H, W) in [0, 1]
+            heat = (heat - heat.min()) / max(float(np.ptp(heat)), 1e-9)   # (H, W) in [0, 1]
             colour = cv2.applyColorMap((255 * heat).astype(np.uint8), cv2.COLORMAP_JET)
             alpha = 0.5 * heat[..., None]                      # the map where it is high
             frame = (frame * (1 - alpha) + colour * alpha).astype(np.uint8)
