@@ -385,7 +385,7 @@ class Monitor:
     """
 
     def __init__(self, context, *, lockstep: bool = False, arm_node: bool = True,
-                 cli_args=None):
+                 base: bool = False, cli_args=None):
         from geometry_msgs.msg import PointStamped, Twist
         from rclpy.node import Node
         from sensor_msgs.msg import CameraInfo, JointState
@@ -405,9 +405,11 @@ class Monitor:
         sub(CameraInfo, 'camera/camera_info', self.on_info, 10)
         sub(Float32MultiArray, 'surprise_map', lambda m: self._stamp(self.maps), 10)
         sub(PointStamped, 'action_location', self.on_location, 10)
-        sub(JointState, 'joint_commands', self.on_command, 10)
-        sub(Twist, 'cmd_vel', lambda m: self._stamp(self.commands), 10)   # a base's
-        sub(JointState, 'joint_states', self.on_state, 10)
+        if base:        # a mobile base's commands (the tracking world)
+            sub(Twist, 'cmd_vel', lambda m: self._stamp(self.commands), 10)
+        else:
+            sub(JointState, 'joint_commands', self.on_command, 10)
+            sub(JointState, 'joint_states', self.on_state, 10)
 
     def _stamp(self, series):
         with self.lock:
@@ -616,7 +618,8 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
     rclpy.init(context=context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     from rclpy.executors import SingleThreadedExecutor
     monitor = Monitor(context, lockstep=args.mode == 'lockstep',
-                      arm_node='arm' in graph_nodes(args), cli_args=own_ros_args(args))
+                      arm_node='arm' in graph_nodes(args), base=bool(args.world),
+                      cli_args=own_ros_args(args))
     watch = SingleThreadedExecutor(context=context)
     watch.add_node(monitor.node)
     recorder = None
