@@ -3,10 +3,10 @@ and the two target behaviours of gym-unrealcv's tracking worlds.
 
 The humanoid (``humanoid/humanoid.urdf``, scaled to 1.7 m) and its clips
 (``data/motions/humanoid3d_*.txt``: 30 frames/s, root position, root and joint rotations,
-Y up, in metres for the humanoid at that scale) ship in pybullet's wheel. A clip is played kinematically: no physics, the joints are
-set to the clip's pose each step. The clip's own forward travel is taken out; a behaviour
-moves the person over the ground and the clip's phase advances with the distance walked,
-so the feet keep pace with the ground.
+Y up, in metres for the humanoid at that scale) ship in pybullet's wheel. A clip is played
+kinematically: no physics, the joints are set to the clip's pose each step. The clip's own
+forward travel is taken out; a behaviour moves the person over the ground and the clip's
+phase advances with the distance walked, so the feet keep pace with the ground.
 """
 from dataclasses import dataclass
 import json
