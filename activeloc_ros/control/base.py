@@ -30,7 +30,7 @@ import statistics
 
 from activeloc_ros.control.geometry import angular_error, Intrinsics
 from activeloc_ros.control.pd import PDConfig, PDController
-from activeloc_ros.control.reactive import LatencyStats
+from activeloc_ros.control.reactive import LatencyStats, location_problem
 from activeloc_ros.errors import ConfigError
 
 FORWARD_RULES = ('ground', 'size', 'constant', 'none')
@@ -163,16 +163,10 @@ class BaseController:
         """React to an action at pixel (u, v) of a frame captured at ``t_capture``; ``box``
         (x, y, w, h; px) is the extent of what is there, if the pointer knows it."""
         cfg, intr = self.config, self.intrinsics
-        if intr is None:
-            return self._ignore('no camera info', t_now)
-        if not (math.isfinite(t_capture) and math.isfinite(t_now)):
-            return self._ignore('bad time', t_now)
-        if not intr.contains(u, v):
-            return self._ignore('outside image', t_now)
-        if peak is not None and not (math.isfinite(peak) and peak >= cfg.min_peak):
-            return self._ignore('weak or bad peak', t_now)
-        if t_capture <= self._last_capture:
-            return self._ignore('out of order', t_now)
+        problem = location_problem(u, v, t_capture, t_now, intrinsics=intr, peak=peak,
+                                   min_peak=cfg.min_peak, last_capture=self._last_capture)
+        if problem is not None:
+            return self._ignore(problem, t_now)
         if t_now - self._last_accept > cfg.watchdog_timeout:
             self.pd.reset()
         self._last_capture, self._last_accept = t_capture, t_now

@@ -154,6 +154,26 @@ class LatencyStats:
         return {'n': len(self._values), 'p50': self.percentile(50), 'p95': self.percentile(95)}
 
 
+def location_problem(u: float, v: float, t_capture: float, t_now: float, *,
+                     intrinsics: Intrinsics | None, peak: float | None, min_peak: float,
+                     last_capture: float) -> str | None:
+    """Why a controller (the arm's or a base's) must not act on an action location, or None:
+    no intrinsics, a bad time, a pixel outside the image, a map without information (its
+    peak below ``min_peak``; None for a pointer without a map), a stamp not after the last
+    accepted one."""
+    if intrinsics is None:
+        return 'no camera info'
+    if not (math.isfinite(t_capture) and math.isfinite(t_now)):
+        return 'bad time'
+    if not intrinsics.contains(u, v):
+        return 'outside image'
+    if peak is not None and not (math.isfinite(peak) and peak >= min_peak):
+        return 'weak or bad peak'
+    if t_capture <= last_capture:
+        return 'out of order'
+    return None
+
+
 class ReactiveController:
     """Turns time-stamped action locations into joint commands the arm can follow.
 
@@ -248,16 +268,11 @@ class ReactiveController:
         frame, whichever driver calls: the node's timer only adds the case of no frames.
         """
         intr = self.intrinsics
-        if intr is None:
-            return self._ignore('no camera info', t_now)
-        if not (math.isfinite(t_capture) and math.isfinite(t_now)):
-            return self._ignore('bad time', t_now)
-        if not intr.contains(u, v):
-            return self._ignore('outside image', t_now)
-        if peak is not None and not (math.isfinite(peak) and peak >= self.config.min_peak):
-            return self._ignore('weak or bad peak', t_now)
-        if t_capture <= self._last_capture:
-            return self._ignore('out of order', t_now)
+        problem = location_problem(u, v, t_capture, t_now, intrinsics=intr, peak=peak,
+                                   min_peak=self.config.min_peak,
+                                   last_capture=self._last_capture)
+        if problem is not None:
+            return self._ignore(problem, t_now)
         if self.config.settle_time > 0 and self._moved(t_capture):
             return self._ignore('camera moving', t_now)
         if self._holding or t_now - self._last_accept > self.config.watchdog_timeout:
