@@ -64,10 +64,11 @@ def method_parts(name: str) -> tuple[dict, str | None]:
     raise ConfigError(f'unknown method {name!r}; known: {", ".join(METHODS)}')
 
 
-def make_pointer(name: str, settings: dict, seed: int):
-    """The pointer of a method (model methods get `settings` + their ablation)."""
+def make_pointer(name: str, settings: dict, seed: int, *, tracker_start: str = 'proposal'):
+    """The pointer of a method (model methods get `settings` + their ablation; trackers start
+    on an EdgeBoxes proposal, or with ``tracker_start='truth'`` on the target's true box)."""
     if name in TRACKER_METHODS:
-        return TrackerMethod(name)
+        return TrackerMethod(name, start=tracker_start)
     if name == 'random':
         return RandomPointer(seed=seed)
     if name == 'centre':
@@ -87,6 +88,14 @@ CONTROL_OPTIONS = ('settle_time', 'watchdog_timeout', 'step_delay_ms', 'min_peak
                    'pan_limit_deg', 'tilt_limit_deg')
 
 
+def method_pd(name: str, control: dict) -> PDConfig:
+    """The PD law of a method: its Table 3 variant's gains, else the default's, with the
+    `PD_OPTIONS` among the --control settings."""
+    variant = method_parts(name)[1] if name in MODEL_METHODS else None
+    pd_options = {k: v for k, v in control.items() if k in PD_OPTIONS}
+    return PDConfig.variant(variant, **pd_options) if variant else PDConfig(**pd_options)
+
+
 def controller_for(name: str, control: dict, screen: VirtualScreen | None = None
                    ) -> ControllerConfig:
     """The controller of a method: its PD variant plus the --control settings; with a
@@ -96,9 +105,7 @@ def controller_for(name: str, control: dict, screen: VirtualScreen | None = None
     if unknown:
         raise ConfigError(f'unknown --control settings {unknown}; known: '
                           f'{", ".join(PD_OPTIONS + CONTROL_OPTIONS)}')
-    variant = method_parts(name)[1] if name in MODEL_METHODS else None
-    pd_options = {k: v for k, v in control.items() if k in PD_OPTIONS}
-    pd = PDConfig.variant(variant, **pd_options) if variant else PDConfig(**pd_options)
+    pd = method_pd(name, control)
     options = {k: v for k, v in control.items() if k in CONTROL_OPTIONS}
     if screen is not None:
         pan, tilt = screen.aim_limits_deg()

@@ -37,11 +37,11 @@ import cv2
 import numpy as np
 
 from activeloc_ros.bench import in_threads, key_values, names, run_jobs
-from activeloc_ros.bench.screen import method_parts, MODEL_METHODS, TRACKER_METHODS
+from activeloc_ros.bench import screen
+from activeloc_ros.bench.screen import method_pd, MODEL_METHODS, PD_OPTIONS, TRACKER_METHODS
 from activeloc_ros.bench.video import H264Writer
 from activeloc_ros.closed_loop import FrameRecord, MODES, Pointing, run_episode
 from activeloc_ros.control.base import BaseConfig, FORWARD_RULES
-from activeloc_ros.control.pd import PDConfig
 from activeloc_ros.errors import ActivelocError, ConfigError
 from activeloc_ros.paths import write_atomic
 from activeloc_ros.progress import Progress
@@ -53,11 +53,8 @@ ABLATION_METHODS = tuple(m for m in MODEL_METHODS if m != 'ours')
 ABLATION_SCENE = 'room'
 SCORES = ('recall', 'precision', 'precision_relaxed', 'episode_length', 'reward', 'success',
           'aae_deg', 'in_view')
-# Paper Table 1: (recall, precision, relaxed precision) of ours per scene (our reading of its
-# figures), for the table's reference row.
-PAPER_OURS = {'snow': (0.75, None, None), 'room': (0.68, None, None),
-              'urban': (0.85, None, None), 'parking': (0.49, None, None)}
-PD_OPTIONS = ('dead_band', 'derivative', 'derivative_tau')
+# Paper Table 1: ours' recall per scene (our reading of its figures), the reference row.
+PAPER_OURS_RECALL = {'snow': 0.75, 'room': 0.68, 'urban': 0.85, 'parking': 0.49}
 
 
 def base_config(method: str, control: dict) -> BaseConfig:
@@ -67,25 +64,15 @@ def base_config(method: str, control: dict) -> BaseConfig:
     if unknown:
         raise ConfigError(f'unknown --control settings {unknown}; known: '
                           f'{", ".join(sorted(known | set(PD_OPTIONS)))}')
-    variant = method_parts(method)[1] if method in MODEL_METHODS else None
-    pd_options = {k: v for k, v in control.items() if k in PD_OPTIONS}
-    pd = PDConfig.variant(variant, **pd_options) if variant else PDConfig(**pd_options)
-    return BaseConfig(pd=pd, **{k: v for k, v in control.items() if k in known})
+    return BaseConfig(pd=method_pd(method, control),
+                      **{k: v for k, v in control.items() if k in known})
 
 
 def make_pointer(method: str, settings: dict, seed: int):
-    from activeloc_ros.bench.pointers import (
-        ModelPointer, OraclePointer, RandomPointer, TrackerMethod)
-    if method in TRACKER_METHODS:
-        return TrackerMethod(method, start='truth')
-    if method == 'random':
-        return RandomPointer(seed=seed)
-    if method == 'oracle':
-        return OraclePointer()
-    if method not in MODEL_METHODS:
+    """The screen benchmark's pointer of a method, its tracker started on the true box."""
+    if method not in METHODS:
         raise ConfigError(f'unknown method {method!r}; known: {", ".join(METHODS)}')
-    overrides, _ = method_parts(method)
-    return ModelPointer(method, {'seed': seed, **settings, **overrides})
+    return screen.make_pointer(method, settings, seed, tracker_start='truth')
 
 
 class Remembering:
@@ -319,7 +306,7 @@ def table(result: dict, methods: list[str], scenes: list[str], *, title: str) ->
                          + ' | '.join(_cell(row['scenes'].get(s)) for s in scenes) + ' |')
     if title.startswith('Table 1'):
         lines.append('| ours, paper (Unreal) | ' + ' | '.join(
-            f'{PAPER_OURS[s][0]:.2f} | -' for s in scenes) + ' |')
+            f'{PAPER_OURS_RECALL[s]:.2f} | -' for s in scenes) + ' |')
         lines.append('| AD-VAT+, SmartTarget-RL, RandomTarget-RL | '
                      + ' | '.join('reported in Unreal, not comparable | -' for _ in scenes)
                      + ' |')
