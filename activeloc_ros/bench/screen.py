@@ -29,7 +29,8 @@ from activeloc_ros import data
 from activeloc_ros.bench import (
     add_sequence_options, in_threads, key_values, load_selected, names, run_jobs)
 from activeloc_ros.bench.time_plots import time_plots
-from activeloc_ros.bench.video import H264Writer
+from activeloc_ros.bench.video import (
+    commit_video, discard_videos, H264Writer, temporary_path)
 from activeloc_ros.bench.pointers import (
     ABLATIONS, CentrePointer, FrameDiffPointer, ModelPointer, Mog2Pointer, OraclePointer,
     RandomPointer, TrackerMethod)
@@ -186,8 +187,8 @@ FRAME_COLUMNS = ['index', 't', 'pan_deg', 'tilt_deg', 'processed', 'scored', 'aa
 class OverlayVideo:
     """The whole screen with the camera's view (yellow), the truth (green) and the
     method's newest location (red), the camera image inset, as H.264 that browsers play.
-    Written to a temporary file that `commit` renames once the whole benchmark has its
-    tables, so an interrupted run leaves the previous run's videos as they were."""
+    Written to a temporary file (`video.temporary_path`) that `video.commit_video` puts in
+    place once the whole benchmark has its tables."""
 
     def __init__(self, path: Path, screen: VirtualScreen, fps: float, label: str, *,
                  max_width: int = 640):
@@ -196,26 +197,10 @@ class OverlayVideo:
         self.fps = fps
         self.label = label
         self.max_width = max_width
-        self.tmp = self.temporary(path)
+        self.tmp = temporary_path(path)
         self.tmp.unlink(missing_ok=True)     # a killed run's leftover
         self.writer = None
         self.inset = None
-
-    @staticmethod
-    def temporary(path: Path) -> Path:
-        return path.with_name(f'.{path.stem}.tmp{path.suffix}')
-
-    @classmethod
-    def commit(cls, path: Path) -> None:
-        """Put a finished video in place (none if its run failed)."""
-        if cls.temporary(path).exists():
-            os.replace(cls.temporary(path), path)
-
-    @classmethod
-    def discard(cls, video_dir: Path) -> None:
-        """Remove every unfinished or uncommitted video under `video_dir`."""
-        for tmp in video_dir.glob('*/.*.tmp.mp4'):
-            tmp.unlink(missing_ok=True)
 
     def add(self, scene: np.ndarray, record: FrameRecord, camera: np.ndarray | None) -> None:
         h, w = scene.shape[:2]
@@ -441,7 +426,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return run(args)
     except KeyboardInterrupt:
-        OverlayVideo.discard(Path(args.out) / 'videos')
+        discard_videos(Path(args.out) / 'videos')
         end_of_progress_line = '\n' if sys.stderr.isatty() else ''
         print(f'{end_of_progress_line}interrupted: {args.out} keeps the previous results',
               file=sys.stderr)
@@ -506,7 +491,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.no_video:
         for seq in sequences:
             for method in methods:
-                OverlayVideo.commit(out / 'videos' / seq.name / f'{method}.mp4')
+                commit_video(out / 'videos' / seq.name / f'{method}.mp4')
     if args.json:
         for row in result['methods']:
             print(json.dumps({'method': row['method'],

@@ -39,7 +39,8 @@ import numpy as np
 from activeloc_ros.bench import in_threads, key_values, names, run_jobs
 from activeloc_ros.bench import screen
 from activeloc_ros.bench.screen import method_pd, MODEL_METHODS, PD_OPTIONS, TRACKER_METHODS
-from activeloc_ros.bench.video import H264Writer
+from activeloc_ros.bench.video import (
+    commit_video, discard_videos, H264Writer, temporary_path)
 from activeloc_ros.closed_loop import FrameRecord, MODES, Pointing, run_episode
 from activeloc_ros.control.base import BaseConfig, FORWARD_RULES
 from activeloc_ros.errors import ActivelocError, ConfigError
@@ -93,14 +94,15 @@ class Remembering:
 
 class TrackingVideo:
     """The camera view (true box green, the method's map and choice red) beside a top-down
-    map (base blue, target red, their paths), as H.264; written to a temporary file that
-    `commit` puts in place once the tables are written."""
+    map (base blue, target red, their paths), as H.264; written to a temporary file
+    (`video.temporary_path`) that `video.commit_video` puts in place once the tables are
+    written."""
 
     SIDE = 480
 
     def __init__(self, path: Path, world, pointer: Remembering, label: str):
         self.path, self.world, self.pointer, self.label = path, world, pointer, label
-        self.tmp = path.with_name(f'.{path.stem}.tmp{path.suffix}')
+        self.tmp = temporary_path(path)
         self.tmp.unlink(missing_ok=True)
         self.writer = None
         self.base_path: list[tuple[float, float]] = []
@@ -179,12 +181,6 @@ class TrackingVideo:
             self.finish()
         finally:
             self.tmp.unlink(missing_ok=True)
-
-    @staticmethod
-    def commit(path: Path) -> None:
-        tmp = path.with_name(f'.{path.stem}.tmp{path.suffix}')
-        if tmp.exists():
-            os.replace(tmp, path)
 
 
 # -- one run (method x scene x episode), in a worker process ---------------------------------
@@ -422,8 +418,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return run(args)
     except KeyboardInterrupt:
-        for tmp in (Path(args.out) / 'videos').glob('*/.*.tmp.mp4'):
-            tmp.unlink(missing_ok=True)
+        discard_videos(Path(args.out) / 'videos')
         print(f'\ninterrupted: {args.out} keeps the previous results', file=sys.stderr)
         return 130
 
@@ -492,7 +487,7 @@ def run(args: argparse.Namespace) -> int:
     pictures = plots(result, out)
     for job in work:
         if job['video']:
-            TrackingVideo.commit(Path(job['video']))
+            commit_video(Path(job['video']))
     if args.json:
         for row in result['methods']:
             print(json.dumps({'method': row['method'], 'scenes': {

@@ -4,6 +4,7 @@ OpenCV's pip wheels write MPEG-4 Part 2 ('mp4v'), which no browser plays, and ca
 H.264 encoder; PyAV's wheels bundle FFmpeg with libx264.
 """
 from fractions import Fraction
+import os
 from pathlib import Path
 
 import av
@@ -53,3 +54,23 @@ class H264Writer:
             self.container.mux(self.stream.encode(None))
         finally:
             self.container.close()
+
+
+# A benchmark writes each video to a temporary file beside it and puts it in place once its
+# tables are written, so an interrupted run leaves the previous run's videos as they were.
+
+def temporary_path(path: Path) -> Path:
+    """Where the video for ``path`` is written until it is committed."""
+    return path.with_name(f'.{path.stem}.tmp{path.suffix}')
+
+
+def commit_video(path: Path) -> None:
+    """Put a finished video in place (none if its run failed)."""
+    if temporary_path(path).exists():
+        os.replace(temporary_path(path), path)
+
+
+def discard_videos(video_dir: Path) -> None:
+    """Remove every unfinished or uncommitted video under ``video_dir``."""
+    for tmp in video_dir.glob('*/.*.tmp.mp4'):
+        tmp.unlink(missing_ok=True)
