@@ -202,3 +202,11 @@ def test_bringup_refuses_a_bad_world_before_any_node(tmp_path, capsys, argv, mes
     assert bringup.main(argv + ['--log-dir', str(logs)]) == 2
     assert message in capsys.readouterr().err
     assert not logs.exists()
+
+
+def test_the_world_tells_its_controller_where_its_camera_sits():
+    config = TrackingConfig(max_steps=5, camera_height=1.2, camera_tilt_deg=-5.0)
+    with TrackingWorld('room', 3, config) as world:
+        ctl = world.controller(BaseConfig())
+    assert (ctl.config.camera_height, ctl.config.camera_tilt_deg) == (1.2, -5.0)
+    assert ctl.intrinsics == config.intrinsics

@@ -31,6 +31,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
 from activeloc_ros.control.base import Twist as BaseTwist
+from activeloc_ros.errors import ConfigError
 from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.nodes.lockstep import ANSWER, Lockstep
 from activeloc_ros.nodes.messages import camera_info, stamp_ns, time_from_ns
@@ -76,7 +77,6 @@ class TrackingNode(Node):
         p = self.params
         self.sim_time = self.get_parameter('use_sim_time').value
         if p['lockstep'] != self.sim_time:
-            from activeloc_ros.errors import ConfigError
             raise ConfigError('lockstep runs the graph on simulated time this node owns: set '
                               'lockstep:=true and use_sim_time:=true together')
         config = TrackingConfig(target=p['target'], max_steps=p['max_steps'],

@@ -17,6 +17,7 @@ segmentation mask, so the target's box is exact. Everything is seeded: the same 
 seed give the same episode for the same commands.
 """
 import contextlib
+import dataclasses
 from dataclasses import dataclass
 import math
 import os
@@ -191,8 +192,11 @@ class TrackingWorld:
     # -- the world interface (world.ScreenWorld's) ---------------------------------------
 
     def controller(self, config: BaseConfig) -> BaseController:
-        """The controller this world's base takes commands from, told its camera."""
-        ctl = BaseController(config, t0=0.0)
+        """The controller this world's base takes commands from, told its camera: its
+        intrinsics, and its height and tilt (which the ground rule reads distances with)."""
+        cfg = self.config
+        ctl = BaseController(dataclasses.replace(config, camera_height=cfg.camera_height,
+                                                 camera_tilt_deg=cfg.camera_tilt_deg), t0=0.0)
         ctl.set_intrinsics(self.intrinsics)
         return ctl
 
