@@ -86,6 +86,15 @@ def test_a_damaged_int8_model_is_a_clear_error(cache):
         make('int8')
 
 
+def test_the_cached_model_is_told_apart_by_the_convolutions_padding():
+    from activeloc_ros.perception.encoders import set_conv_padding
+    encoder = TinyEncoder()
+    zeros = int8.cache_key(encoder, (1, 3, 64, 64))
+    reflect = int8.cache_key(set_conv_padding(encoder, 'reflect'), (1, 3, 64, 64))
+    assert zeros != reflect
+    assert int8.cache_key(set_conv_padding(encoder, 'zeros'), (1, 3, 64, 64)) == zeros
+
+
 def test_int8_without_openvino_says_what_to_install(cache, monkeypatch):
     monkeypatch.setattr(int8, 'available', lambda: False)
     with pytest.raises(WeightsError, match='pip install openvino nncf'):

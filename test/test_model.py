@@ -126,6 +126,22 @@ def test_the_mirrored_border_keeps_the_grid(pad):
     assert model.grid == 14 and result.surprise_map.shape == (14, 14)
 
 
+@pytest.mark.parametrize('encoder', ['efficientnet_lite0', 'vgg19'])
+def test_reflect_conv_padding_gives_a_uniform_picture_the_same_features_in_every_cell(encoder):
+    """The border cells see mirrored picture, not zeros: with conv_padding reflect a grey
+    frame's cells are all alike; with the convolutions' zero padding the border differs."""
+    from activeloc_ros.perception.features import Features
+
+    def spread(padding: str) -> float:
+        torch.manual_seed(0)
+        features = Features(PerceptionConfig(**{**SMALL, 'encoder': encoder, 'encoder_pad': 0,
+                                                'conv_padding': padding}))
+        cells = features.of(features.preprocess(np.full((224, 224, 3), 120, np.uint8)))[0]
+        return float((cells - cells.mean(dim=0)).abs().max() / cells.abs().max())
+
+    assert spread('reflect') < 1e-4 < 0.01 < spread('zeros')
+
+
 # -- maps and locations ----------------------------------------------------------------------
 @pytest.mark.parametrize('real', [True, False])
 def test_first_map_is_uniform_then_a_distribution_with_its_argmax(real):

@@ -51,6 +51,11 @@ class PerceptionConfig:
         'cells are cut off again: the border cells then see picture, not the zero padding '
         'of the convolutions, which otherwise makes them the most surprising cells when the '
         'camera moves (a multiple of the encoder stride, 16; 0 = off, paper)', at_least(0))
+    conv_padding: str = _param(
+        'zeros', "what the encoder's convolutions pad their input with: zeros (the paper's, "
+        "as in ImageNet training) or reflect (mirrored picture at every layer: like "
+        'encoder_pad the border cells see no zeros, but at no extra work)',
+        one_of('zeros', 'reflect'))
     pretrained: bool = _param(
         True, 'load ImageNet weights; False = random encoder, for unit tests only')
     blur_ksize: int = _param(

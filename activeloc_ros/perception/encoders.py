@@ -251,7 +251,8 @@ class Conv2dSame(nn.Conv2d):
         for size, k, s in zip(x.shape[-1:-3:-1], self.kernel_size[::-1], self.stride[::-1]):
             total = max((math.ceil(size / s) - 1) * s + k - size, 0)
             pads += [total // 2, total - total // 2]
-        return super().forward(F.pad(x, pads))
+        mode = 'reflect' if self.padding_mode == 'reflect' else 'constant'
+        return super().forward(F.pad(x, pads, mode=mode))
 
 
 def tf_conv(cin: int, cout: int, k: int, stride: int, *, groups: int = 1) -> nn.Conv2d:
@@ -446,6 +447,15 @@ class ResNet50Encoder(Encoder):
 def _replace(module: nn.Module, path: str, new: nn.Module) -> None:
     parent, _, name = path.rpartition('.')
     setattr(module.get_submodule(parent) if parent else module, name, new)
+
+
+def set_conv_padding(encoder: nn.Module, mode: str) -> nn.Module:
+    """Make every convolution wider than 1x1 pad its input with `mode`: 'zeros' (as the
+    ImageNet weights were trained) or 'reflect'. ResNet-50's max pool keeps its padding."""
+    for m in encoder.modules():
+        if isinstance(m, nn.Conv2d) and max(m.kernel_size) > 1:
+            m.padding_mode = mode
+    return encoder
 
 
 def fold_batchnorm(enc: Encoder) -> Encoder:

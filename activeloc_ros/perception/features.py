@@ -60,6 +60,8 @@ class Features:
             from activeloc_ros.perception.encoders import build_encoder
             encoder = build_encoder(cfg.encoder, weights=cfg.weights or None,
                                     pretrained=cfg.pretrained, classifier=False)
+        from activeloc_ros.perception.encoders import set_conv_padding
+        set_conv_padding(encoder, cfg.conv_padding)
         # eval mode always: BatchNorm statistics of one frame are meaningless; the weights
         # still learn when `train`
         self.encoder = encoder.eval()

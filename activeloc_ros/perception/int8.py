@@ -87,7 +87,11 @@ def cache_key(encoder: nn.Module, input_shape: tuple[int, ...]) -> str:
     from activeloc_ros.perception.cache import state_digest
     from activeloc_ros.sources import default_bag
     bag = sorted(default_bag().glob('*.mcap'))
+    # the convolutions' padding (not in the state dict); zeros adds nothing, so models
+    # built before conv_padding existed keep their key
+    padding = {m.padding_mode for m in encoder.modules() if isinstance(m, nn.Conv2d)}
     parts = [state_digest(encoder.state_dict()), str(tuple(input_shape)),
+             *sorted(padding - {'zeros'}),
              *(file_sha256(p) for p in bag), str(CALIBRATION_FRAMES),
              openvino.__version__, nncf.__version__]
     return hashlib.sha256('|'.join(parts).encode()).hexdigest()[:16]
