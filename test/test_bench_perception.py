@@ -28,6 +28,26 @@ def test_every_row_names_its_cpu_flags_and_precision(capsys):
     assert 'enc/pred' in out.splitlines()[2]
 
 
+def test_a_params_file_adds_its_configurations_rows_beside_the_defaults(tmp_path, capsys):
+    from conftest import PARAMS
+    argv = ['--encoder', 'efficientnet_lite0', '--random-weights', '--frames', '3',
+            '--warmup', '1', '--update-encoder', 'no', '--size', '96x64', '--threads', '1',
+            '--set', 'encoder_precision=float32']
+    assert bench.main(argv + ['--params', str(PARAMS / 'realtime.yaml'), '--json']) == 0
+    default, realtime = json.loads(capsys.readouterr().out)
+    assert (default['configuration'], realtime['configuration']) == ('default', 'realtime')
+    assert (default['config']['encoder_pad'], default['config']['conv_padding']) == (32, 'zeros')
+    assert (realtime['config']['encoder_pad'], realtime['config']['conv_padding']) == (
+        0, 'reflect')
+
+    other = tmp_path / 'controller_only.yaml'
+    other.write_text('controller:\n  ros__parameters:\n    kp: 0.5\n')
+    for path, message in ((tmp_path / 'missing.yaml', 'no such file'),
+                          (other, 'sets no perception model parameter')):
+        assert bench.main(argv + ['--params', str(path)]) == 2
+        assert message in capsys.readouterr().err
+
+
 def test_the_cpu_line_says_what_is_missing():
     line = bench.describe_cpu({'model': 'X', 'cores': 2, 'flags': ['AVX2', 'AVX512']})
     assert line == 'X, 2 cores, AVX2, AVX512; no VNNI, AVX512_BF16, AMX'

@@ -11,6 +11,7 @@ by torch's FlopCounterMode on one frame) over this CPU's peak, measured with a m
 stage's precision, and the ratio of the measured p50 to that floor.
 
     python -m activeloc_ros.bench perception --encoder efficientnet_lite0 --frames 2000
+    python -m activeloc_ros.bench perception --params params/realtime.yaml   # beside the default
 """
 import argparse
 import concurrent.futures
@@ -18,6 +19,7 @@ import json
 import math
 import multiprocessing
 import os
+from pathlib import Path
 import platform
 import resource
 import sys
@@ -56,6 +58,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                    help='random encoder weights: same cost, no weight files needed')
     p.add_argument('--set', nargs='+', action='extend', default=[], metavar='KEY=VALUE',
                    help='any PerceptionConfig field, e.g. --set hidden=256 lr=1e-4')
+    p.add_argument('--params', nargs='+', action='extend', default=[], metavar='FILE',
+                   help="also the configuration a perception params file sets (e.g. "
+                        "params/realtime.yaml): each file's rows beside the default's")
     p.add_argument('--floor', action='store_true',
                    help="also each stage's arithmetic floor (GFLOP over a measured matmul "
                         'peak) and the measured/floor ratio')
@@ -156,6 +161,19 @@ def matmul_peak_gflops(dtype_name: str, *, n: int = 2048, seconds: float = 1.0) 
     return 2 * n ** 3 / best / 1e9
 
 
+def params_file_settings(path: str) -> dict[str, Any]:
+    """The PerceptionConfig fields a ROS 2 params file sets for the perception node."""
+    from activeloc_ros.nodes.ros_params import file_values
+    from activeloc_ros.perception.config import PerceptionConfig
+    if not Path(path).is_file():
+        raise ConfigError(f'--params: no such file {path}')
+    fields = PerceptionConfig.descriptions()
+    settings = {k: v for k, v in file_values('perception', [path]).items() if k in fields}
+    if not settings:
+        raise ConfigError(f'--params: {path} sets no perception model parameter')
+    return settings
+
+
 def is_default(config: dict[str, Any]) -> bool:
     """Is this the shipped configuration, the thread count aside?"""
     from activeloc_ros.perception.config import PerceptionConfig
@@ -213,7 +231,7 @@ def floors(model, frame: np.ndarray, stage_ms: dict[str, float]) -> dict[str, An
 def floor_table(row: dict[str, Any]) -> str:
     f = row['floor']
     peaks = ', '.join(f'{p} {g:.0f}' for p, g in f['peak_gflops'].items())
-    lines = [f'{row["encoder"]} floors (matmul peak GFLOP/s: {peaks}):',
+    lines = [f'{row["encoder"]} ({row["configuration"]}) floors (matmul peak GFLOP/s: {peaks}):',
              f'{"stage":<10}{"precision":>10}{"GFLOP":>8}{"floor ms":>10}{"p50 ms":>8}'
              f'{"ratio":>7}']
     for stage, v in f['stages'].items():
@@ -273,7 +291,7 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
     row = {
         'encoder': cfg.encoder, 'update_encoder': cfg.update_encoder,
         'precision': model.precision, 'predictor_precision': model.predictor_precision,
-        'cpu': cpu_info(), 'default': job['default'],
+        'cpu': cpu_info(), 'default': job['default'], 'configuration': job['configuration'],
         'frames': n, 'warmup': warmup, 'threads': job['threads'],
         'p50_ms': float(np.percentile(lat, 50) * 1e3),
         'p95_ms': float(np.percentile(lat, 95) * 1e3),
@@ -294,7 +312,7 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
 
 
 def table(rows: list[dict[str, Any]]) -> str:
-    head = (f'{"encoder":<19}{"upd.enc":>8}{"enc/pred":>10}{"frames":>7}{"p50 ms":>8}'
+    head = (f'{"configuration":<14}{"encoder":<19}{"upd.enc":>8}{"enc/pred":>10}{"frames":>7}{"p50 ms":>8}'
             f'{"p95 ms":>8}{"fps":>7}{"upd %":>6}{"peakRSS MB":>11}{"RSS growth MB":>14}'
             f'  p50 ms: {" / ".join(SHORT[s] for s in STAGES)}')
     lines = [head, '-' * len(head)]
@@ -302,7 +320,8 @@ def table(rows: list[dict[str, Any]]) -> str:
         s = r['stage_p50_ms']
         precision = '/'.join(SHORT_PRECISION[r[k]] for k in ('precision', 'predictor_precision'))
         lines.append(
-            f'{r["encoder"]:<19}{"yes" if r["update_encoder"] else "no":>8}'
+            f'{r["configuration"]:<14}{r["encoder"]:<19}'
+            f'{"yes" if r["update_encoder"] else "no":>8}'
             f'{precision:>10}{r["frames"]:>7}{r["p50_ms"]:>8.1f}{r["p95_ms"]:>8.1f}'
             f'{r["fps"]:>7.1f}{100 * r["update_share"]:>6.0f}{r["peak_rss_mb"]:>11.0f}'
             f'{r["rss_growth_mb"]:>+14.1f}  ' + ' / '.join(f'{s[k]:.1f}' for k in STAGES)
@@ -383,19 +402,26 @@ def main(argv: list[str]) -> int:
         return 2
     updates = {'both': (False, True), 'yes': (True,), 'no': (False,)}[args.update_encoder]
     jobs = []
-    for encoder in args.encoder or [PerceptionConfig.encoder]:
-        for update in updates:
-            config = {**extra, **weight_settings(args), 'encoder': encoder,
-                      'update_encoder': update, 'num_threads': args.threads}
-            try:
-                PerceptionConfig.from_dict(config)      # a bad --set fails here, once
-            except ConfigError as err:
-                print(f'error: {err}', file=sys.stderr)
-                return 2
-            jobs.append({'config': config, 'default': is_default(config),
-                         'frames': args.frames, 'warmup': args.warmup,
-                         'video': args.video, 'size': size, 'threads': args.threads,
-                         'floor': args.floor})
+    try:
+        configurations = [('default', {})] + [(Path(f).stem, params_file_settings(f))
+                                               for f in args.params]
+    except ConfigError as err:
+        print(f'error: {err}', file=sys.stderr)
+        return 2
+    for name, settings in configurations:
+        for encoder in args.encoder or [PerceptionConfig.encoder]:
+            for update in updates:
+                config = {**settings, **extra, **weight_settings(args), 'encoder': encoder,
+                          'update_encoder': update, 'num_threads': args.threads}
+                try:
+                    PerceptionConfig.from_dict(config)      # a bad --set fails here, once
+                except ConfigError as err:
+                    print(f'error: {name}: {err}', file=sys.stderr)
+                    return 2
+                jobs.append({'config': config, 'default': is_default(config),
+                             'configuration': name, 'frames': args.frames,
+                             'warmup': args.warmup, 'video': args.video, 'size': size,
+                             'threads': args.threads, 'floor': args.floor})
     rows, failed = [], 0
     spawn = multiprocessing.get_context('spawn')
     for job in jobs:
@@ -404,8 +430,8 @@ def main(argv: list[str]) -> int:
                 rows.append(pool.submit(run, job).result())
             except ActivelocError as err:
                 failed += 1
-                print(f'{job["config"]["encoder"]}: {type(err).__name__}: {err}',
-                      file=sys.stderr)
+                print(f'{job["configuration"]} {job["config"]["encoder"]}: '
+                      f'{type(err).__name__}: {err}', file=sys.stderr)
     if args.json:
         print(json.dumps(rows, indent=1))
     elif rows:
