@@ -108,7 +108,11 @@ def peak_point(heatmap: np.ndarray, image_wh: tuple[float, float]) -> tuple[floa
 def blob_box(heatmap: np.ndarray, image_wh: tuple[float, float], *,
              share: float = 0.5) -> tuple[float, float, float, float] | None:
     """The box (x, y, w, h; px) of the map's blob: the cells connected to its peak cell
-    that reach ``share`` of the peak. None for a map with no positive peak."""
+    that reach ``share`` of the peak. None for a map with no positive peak.
+
+    Its corners are float32 numbers, the precision of the message that carries them
+    (`action_region`, geometry_msgs/Point32), so a controller in the graph and one in the
+    benchmark steer on the same numbers: a rounding step apart, a closed loop parts."""
     m = np.asarray(heatmap, np.float64)
     peak = float(m.max()) if m.size else 0.0
     if not (math.isfinite(peak) and peak > 0):
@@ -116,8 +120,9 @@ def blob_box(heatmap: np.ndarray, image_wh: tuple[float, float], *,
     _, labels = cv2.connectedComponents((m >= share * peak).astype(np.uint8), connectivity=4)
     rows, cols = np.nonzero(labels == labels[peak_cell(m)])
     cw, ch = cell_size(m.shape, image_wh)
-    x, y = cols.min() * cw, rows.min() * ch
-    return (x, y, (cols.max() + 1) * cw - x, (rows.max() + 1) * ch - y)
+    x0, y0, x1, y1 = (float(np.float32(v)) for v in (
+        cols.min() * cw, rows.min() * ch, (cols.max() + 1) * cw, (rows.max() + 1) * ch))
+    return (x0, y0, x1 - x0, y1 - y0)
 
 
 def fixation_map(points_xy: Iterable[tuple[float, float]], grid_shape: tuple[int, int],

@@ -1,12 +1,14 @@
 """The message conversions every node shares (`activeloc_ros.nodes.messages`)."""
 import math
 
+import numpy as np
 import pytest
 from sensor_msgs.msg import JointState
 
 from activeloc_ros.control import JOINT_NAMES
 from activeloc_ros.nodes.messages import (
-    arm_joints_deg, joint_state, stamp_ns, stamp_s, time_from_ns, time_from_s)
+    arm_joints_deg, joint_state, region_box, region_message, stamp_ns, stamp_s, time_from_ns,
+    time_from_s)
 
 
 def test_stamps_round_trip_in_nanoseconds_and_seconds():
@@ -36,3 +38,20 @@ def test_a_joint_state_without_all_six_joints_is_none():
     assert arm_joints_deg(JointState(name=list(msg.name)[:5],
                                      position=list(msg.position)[:5])) is None
     assert arm_joints_deg(JointState(name=list(msg.name), position=[0.0])) is None
+
+
+@pytest.mark.parametrize('image_wh', [(320, 240), (640, 480), (1280, 720)])
+def test_a_blob_box_crosses_the_wire_unchanged(image_wh):
+    """The controller in the graph gets the very box the benchmark's controller gets: the
+    region's float32 corners lose nothing, so a lockstep graph does not part from the
+    benchmark (a box a rounding step off once sent a tracking episode elsewhere)."""
+    from geometry_msgs.msg import PolygonStamped
+    from rclpy.serialization import deserialize_message, serialize_message
+    from activeloc_ros.metrics import blob_box
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        heat = rng.random((14, 14)) ** 8
+        box = blob_box(heat, image_wh)
+        wire = serialize_message(region_message(box, PolygonStamped().header))
+        assert region_box(deserialize_message(wire, PolygonStamped)) == box
+    assert region_box(PolygonStamped()) is None

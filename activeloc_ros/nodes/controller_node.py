@@ -35,7 +35,8 @@ from activeloc_ros.control.base import ACTION_SETS, BaseConfig, BaseController, 
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.pd import DERIVATIVE_MODES
 from activeloc_ros.errors import ConfigError
-from activeloc_ros.nodes.messages import arm_joints_deg, joint_state, stamp_ns, stamp_s
+from activeloc_ros.nodes.messages import (
+    arm_joints_deg, joint_state, region_box, stamp_ns, stamp_s)
 from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
 from activeloc_ros.nodes.settings import MAPPING_PARAMS, mapping_from
 
@@ -264,10 +265,8 @@ class ControllerNode(Node):
 
     def on_region(self, msg: PolygonStamped) -> None:
         """The box (two corners, px) of what is at the location of the same stamp."""
-        points = msg.polygon.points
-        if len(points) == 2:
-            box = (points[0].x, points[0].y, points[1].x - points[0].x,
-                   points[1].y - points[0].y)
+        box = region_box(msg)
+        if box is not None:
             with self._lock:
                 self._regions[stamp_ns(msg.header.stamp)] = box
                 while len(self._regions) > 20:

@@ -3,7 +3,8 @@ the spirit of cv_bridge (images: `images`).
 
 Stamps: a `builtin_interfaces/Time` (or anything with `sec` and `nanosec`) to and from
 integer nanoseconds or float seconds. Joints: `sensor_msgs/JointState` carries radians; the
-core works in degrees. Reading needs no ROS; the message types are imported only to build
+core works in degrees. Regions: a box (x, y, w, h; px) as a `geometry_msgs/PolygonStamped`
+of its two corners. Reading needs no ROS; the message types are imported only to build
 messages.
 """
 import math
@@ -54,6 +55,24 @@ def camera_info(k, width: int, height: int, header):
     info.p = [float(k[0, 0]), 0.0, float(k[0, 2]), 0.0,
               0.0, float(k[1, 1]), float(k[1, 2]), 0.0, 0.0, 0.0, 1.0, 0.0]
     return info
+
+
+def region_message(box: Sequence[float], header):
+    """A geometry_msgs/PolygonStamped of the box's top-left and bottom-right corners (float32
+    on the wire: `metrics.blob_box` gives corners that survive it exactly)."""
+    from geometry_msgs.msg import Point32, PolygonStamped
+    x, y, w, h = (float(v) for v in box)
+    msg = PolygonStamped(header=header)
+    msg.polygon.points = [Point32(x=x, y=y), Point32(x=x + w, y=y + h)]
+    return msg
+
+
+def region_box(msg) -> tuple[float, float, float, float] | None:
+    """The box (x, y, w, h) of a `region_message`; None unless it has two corners."""
+    points = msg.polygon.points
+    if len(points) != 2:
+        return None
+    return (points[0].x, points[0].y, points[1].x - points[0].x, points[1].y - points[0].y)
 
 
 def arm_joints_deg(msg) -> list[float] | None:

@@ -23,7 +23,7 @@ import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Point32, PointStamped, PolygonStamped
+from geometry_msgs.msg import PointStamped, PolygonStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -37,6 +37,7 @@ from activeloc_ros.errors import FrameError
 from activeloc_ros.images import (decode_compressed, float_image_fields, image_to_rgb, overlay,
                                   rgb_to_image_fields)
 from activeloc_ros.nodes.health import PipelineStats
+from activeloc_ros.nodes.messages import region_message
 from activeloc_ros.nodes.qos import offered_reliability
 from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
 from activeloc_ros.perception.config import PerceptionConfig
@@ -215,11 +216,7 @@ class PerceptionNode(Node):
         height, width = rgb.shape[:2]
         box = metrics.blob_box(result.surprise_map, (width, height))
         if box is not None:
-            x, y, w, h = box
-            region = PolygonStamped(header=header)
-            region.polygon.points = [Point32(x=float(x), y=float(y)),
-                                     Point32(x=float(x + w), y=float(y + h))]
-            self.region_pub.publish(region)
+            self.region_pub.publish(region_message(box, header))
         location = PointStamped(header=header)
         location.point.x, location.point.y = (float(v) for v in result.location_px)
         location.point.z = float(result.peak) if math.isfinite(result.peak) else 0.0
