@@ -313,8 +313,8 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
 
 def table(rows: list[dict[str, Any]]) -> str:
     head = (f'{"configuration":<14}{"encoder":<19}{"upd.enc":>8}{"enc/pred":>10}{"frames":>7}'
-            f'{"p50 ms":>8}{"p95 ms":>8}{"fps":>7}{"upd %":>6}{"peakRSS MB":>11}{"RSS growth MB":>14}'
-            f'  p50 ms: {" / ".join(SHORT[s] for s in STAGES)}')
+            f'{"p50 ms":>8}{"p95 ms":>8}{"fps":>7}{"upd %":>6}{"peakRSS MB":>11}'
+            f'{"RSS growth MB":>14}  p50 ms: {" / ".join(SHORT[s] for s in STAGES)}')
     lines = [head, '-' * len(head)]
     for r in rows:
         s = r['stage_p50_ms']
