@@ -35,7 +35,8 @@ def test_a_params_file_adds_its_configurations_rows_beside_the_defaults(tmp_path
             '--set', 'encoder_precision=float32']
     assert bench.main(argv + ['--params', str(PARAMS / 'realtime.yaml'), '--json']) == 0
     default, realtime = json.loads(capsys.readouterr().out)
-    assert (default['configuration'], realtime['configuration']) == ('default', 'realtime')
+    assert (default['configuration'], realtime['configuration']) == ('default +set',
+                                                                     'realtime +set')
     assert (default['config']['encoder_pad'], default['config']['conv_padding']) == (32, 'zeros')
     assert (realtime['config']['encoder_pad'], realtime['config']['conv_padding']) == (
         0, 'reflect')

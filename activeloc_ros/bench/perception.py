@@ -312,7 +312,7 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
 
 
 def table(rows: list[dict[str, Any]]) -> str:
-    head = (f'{"configuration":<14}{"encoder":<19}{"upd.enc":>8}{"enc/pred":>10}{"frames":>7}'
+    head = (f'{"configuration":<19}{"encoder":<19}{"upd.enc":>8}{"enc/pred":>10}{"frames":>7}'
             f'{"p50 ms":>8}{"p95 ms":>8}{"fps":>7}{"upd %":>6}{"peakRSS MB":>11}'
             f'{"RSS growth MB":>14}  p50 ms: {" / ".join(SHORT[s] for s in STAGES)}')
     lines = [head, '-' * len(head)]
@@ -320,7 +320,7 @@ def table(rows: list[dict[str, Any]]) -> str:
         s = r['stage_p50_ms']
         precision = '/'.join(SHORT_PRECISION[r[k]] for k in ('precision', 'predictor_precision'))
         lines.append(
-            f'{r["configuration"]:<14}{r["encoder"]:<19}'
+            f'{r["configuration"]:<19}{r["encoder"]:<19}'
             f'{"yes" if r["update_encoder"] else "no":>8}'
             f'{precision:>10}{r["frames"]:>7}{r["p50_ms"]:>8.1f}{r["p95_ms"]:>8.1f}'
             f'{r["fps"]:>7.1f}{100 * r["update_share"]:>6.0f}{r["peak_rss_mb"]:>11.0f}'
@@ -409,6 +409,7 @@ def main(argv: list[str]) -> int:
         print(f'error: {err}', file=sys.stderr)
         return 2
     for name, settings in configurations:
+        name += ' +set' if extra else ''
         for encoder in args.encoder or [PerceptionConfig.encoder]:
             for update in updates:
                 config = {**settings, **extra, **weight_settings(args), 'encoder': encoder,
