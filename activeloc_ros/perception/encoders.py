@@ -251,7 +251,7 @@ class Conv2dSame(nn.Conv2d):
         for size, k, s in zip(x.shape[-1:-3:-1], self.kernel_size[::-1], self.stride[::-1]):
             total = max((math.ceil(size / s) - 1) * s + k - size, 0)
             pads += [total // 2, total - total // 2]
-        mode = 'reflect' if self.padding_mode == 'reflect' else 'constant'
+        mode = 'constant' if self.padding_mode == 'zeros' else self.padding_mode
         return super().forward(F.pad(x, pads, mode=mode))
 
 

@@ -16,6 +16,7 @@ import torch.nn.functional as F
 
 from activeloc_ros.errors import ConfigError, FrameError
 from activeloc_ros.perception.config import PerceptionConfig
+from activeloc_ros.perception.encoders import build_encoder, fold_batchnorm, set_conv_padding
 
 
 # torch's probes of the instruction sets that decide the encoder's speed (private in 2.13)
@@ -57,10 +58,8 @@ class Features:
         self.cfg = cfg
         self.train = train
         if encoder is None:
-            from activeloc_ros.perception.encoders import build_encoder
             encoder = build_encoder(cfg.encoder, weights=cfg.weights or None,
                                     pretrained=cfg.pretrained, classifier=False)
-        from activeloc_ros.perception.encoders import set_conv_padding
         set_conv_padding(encoder, cfg.conv_padding)
         # eval mode always: BatchNorm statistics of one frame are meaningless; the weights
         # still learn when `train`
@@ -72,7 +71,6 @@ class Features:
         # `encoder` keeps the unfolded weights for checkpoints
         self.frozen_encoder = self.encoder
         if cfg.fold_bn and not train and _has_batchnorm(self.encoder):
-            from activeloc_ros.perception.encoders import fold_batchnorm
             self.frozen_encoder = fold_batchnorm(self.encoder)
         precision = resolve_precision(cfg.encoder_precision)
         if cfg.encoder_precision == 'auto' and not train and cfg.pretrained:
