@@ -616,11 +616,11 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
     import rclpy
     context = rclpy.Context()
     rclpy.init(context=context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
-    from rclpy.executors import SingleThreadedExecutor
+    from activeloc_ros.nodes.ros_params import lean_executor
     monitor = Monitor(context, lockstep=args.mode == 'lockstep',
                       arm_node='arm' in graph_nodes(args), base=bool(args.world),
                       cli_args=own_ros_args(args))
-    watch = SingleThreadedExecutor(context=context)
+    watch = lean_executor(context)
     watch.add_node(monitor.node)
     recorder = None
     if args.record is not None:

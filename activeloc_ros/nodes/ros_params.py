@@ -34,7 +34,7 @@ except ModuleNotFoundError as exc:     # pip install . without the 'ros' extra
         'rclpy is not installed: source a ROS 2 Jazzy (source /opt/ros/jazzy/setup.bash) or '
         "install the PyPI wheels with pip install '.[ros]'", name='rclpy') from exc
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.parameter import Parameter
 import yaml
 
@@ -340,6 +340,17 @@ def wants_help(args: Sequence[str]) -> bool:
     return any(a in ('-h', '--help') for a in ours)
 
 
+def lean_executor(context=None):
+    """A single-threaded executor with the least work per callback: rclpy's EventsExecutor
+    where this rclpy has it (Jazzy's later releases), else its SingleThreadedExecutor, which
+    builds a wait set in Python for every callback."""
+    try:
+        from rclpy.experimental import EventsExecutor
+    except ImportError:
+        return SingleThreadedExecutor(context=context)
+    return EventsExecutor(context=context)
+
+
 def run(node_factory: Callable[..., Any], args=None, *,
         on_stop: Callable[[Any], None] | None = None,
         help_text: Callable[[], str] | None = None) -> int:
@@ -383,18 +394,22 @@ def run(node_factory: Callable[..., Any], args=None, *,
         signal.signal(signal.SIGTERM, request_stop)
     _process_args[:] = process_args
     rclpy.init(args=args, signal_handler_options=handler)
-    node = None
+    node = executor = None
     try:
         node = node_factory()
+        executor = lean_executor()
+        executor.add_node(node)
         # A node that ends by itself (a camera at the end of its bag) sets `finished`.
         while rclpy.ok() and not stop.requested and not getattr(node, 'finished', False):
-            rclpy.spin_once(node, timeout_sec=0.1)
+            executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ActivelocError as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
     finally:
+        if executor is not None and node is not None:
+            executor.remove_node(node)        # on_stop may spin the node on its own
         if node is not None:
             if on_stop is not None and rclpy.ok():
                 on_stop(node)
