@@ -340,6 +340,13 @@ def wants_help(args: Sequence[str]) -> bool:
     return any(a in ('-h', '--help') for a in ours)
 
 
+def wake_in(timer, seconds: float) -> None:
+    """Let a camera's timer sleep until its next frame is due, ``seconds`` from now (1 ms to
+    50 ms), instead of polling."""
+    timer.timer_period_ns = int(min(max(seconds, 0.001), 0.05) * 1e9)
+    timer.reset()
+
+
 def lean_executor(context=None):
     """A single-threaded executor with the least work per callback: rclpy's EventsExecutor
     where this rclpy has it (Jazzy's later releases), else its SingleThreadedExecutor, which
