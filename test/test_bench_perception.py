@@ -33,13 +33,12 @@ def test_a_params_file_adds_its_configurations_rows_beside_the_defaults(tmp_path
     argv = ['--encoder', 'efficientnet_lite0', '--random-weights', '--frames', '3',
             '--warmup', '1', '--update-encoder', 'no', '--size', '96x64', '--threads', '1',
             '--set', 'encoder_precision=float32']
-    assert bench.main(argv + ['--params', str(PARAMS / 'realtime.yaml'), '--json']) == 0
-    default, realtime = json.loads(capsys.readouterr().out)
-    assert (default['configuration'], realtime['configuration']) == ('default +set',
-                                                                     'realtime +set')
-    assert (default['config']['encoder_pad'], default['config']['conv_padding']) == (32, 'zeros')
-    assert (realtime['config']['encoder_pad'], realtime['config']['conv_padding']) == (
-        0, 'reflect')
+    assert bench.main(argv + ['--params', str(PARAMS / 'mirrored_border.yaml'), '--json']) == 0
+    default, border = json.loads(capsys.readouterr().out)
+    assert (default['configuration'], border['configuration']) == ('default +set',
+                                                                   'mirrored_border +set')
+    assert (default['config']['encoder_pad'], default['config']['conv_padding']) == (0, 'reflect')
+    assert (border['config']['encoder_pad'], border['config']['conv_padding']) == (32, 'zeros')
 
     other = tmp_path / 'controller_only.yaml'
     other.write_text('controller:\n  ros__parameters:\n    kp: 0.5\n')

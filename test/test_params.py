@@ -57,12 +57,12 @@ def test_perception_yaml_repeats_the_model_defaults():
         assert values[field.name] == field.default, f'perception.yaml: stale {field.name}'
 
 
-def test_the_realtime_params_file_passes_bringups_checks_and_sets_the_cheap_encoder():
+def test_the_mirrored_border_params_file_passes_bringups_checks_and_sets_the_border():
     from activeloc_ros.bringup import check_node_params, node_values, parse_args
-    path = str(PARAMS / 'realtime.yaml')
+    path = str(PARAMS / 'mirrored_border.yaml')
     check_node_params(parse_args(['--params', path]))      # raises on any bad key or value
     values = node_values('perception', [path])
-    assert (values['encoder_pad'], values['conv_padding']) == (0, 'reflect')
+    assert (values['encoder_pad'], values['conv_padding']) == (32, 'zeros')
 
 
 # -- params files: nothing in them passes in silence (issue 13, item 9) ---------------------

@@ -11,7 +11,7 @@ by torch's FlopCounterMode on one frame) over this CPU's peak, measured with a m
 stage's precision, and the ratio of the measured p50 to that floor.
 
     python -m activeloc_ros.bench perception --encoder efficientnet_lite0 --frames 2000
-    python -m activeloc_ros.bench perception --params params/realtime.yaml   # beside the default
+    python -m activeloc_ros.bench perception --params params/mirrored_border.yaml   # two rows
 """
 import argparse
 import concurrent.futures
@@ -60,7 +60,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                    help='any PerceptionConfig field, e.g. --set hidden=256 lr=1e-4')
     p.add_argument('--params', nargs='+', action='extend', default=[], metavar='FILE',
                    help="also the configuration a perception params file sets (e.g. "
-                        "params/realtime.yaml): each file's rows beside the default's")
+                        "params/mirrored_border.yaml): each file's rows beside the default's")
     p.add_argument('--floor', action='store_true',
                    help="also each stage's arithmetic floor (GFLOP over a measured matmul "
                         'peak) and the measured/floor ratio')

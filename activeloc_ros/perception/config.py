@@ -47,13 +47,14 @@ class PerceptionConfig:
         'encoder, else bfloat16 where the CPU has AMX or AVX512_BF16, else float32',
         one_of(*ENCODER_PRECISIONS))
     encoder_pad: int = _param(
-        32, 'pixels of mirrored picture added round the encoder input, whose extra feature '
+        0, 'pixels of mirrored picture added round the encoder input, whose extra feature '
         'cells are cut off again: the border cells then see picture, not the zero padding '
         'of the convolutions, which otherwise makes them the most surprising cells when the '
-        'camera moves (a multiple of the encoder stride, 16; 0 = off, paper)', at_least(0))
+        'camera moves (a multiple of the encoder stride, 16; 0 = off, paper; 32 with '
+        'conv_padding zeros: params/mirrored_border.yaml)', at_least(0))
     conv_padding: str = _param(
-        'zeros', "what the encoder's convolutions pad their input with: zeros (the paper's, "
-        "as in ImageNet training) or reflect (mirrored picture at every layer: like "
+        'reflect', "what the encoder's convolutions pad their input with: zeros (the "
+        "paper's, as in ImageNet training) or reflect (mirrored picture at every layer: like "
         'encoder_pad the border cells see no zeros, but at no extra work)',
         one_of('zeros', 'reflect'))
     pretrained: bool = _param(
