@@ -163,7 +163,7 @@ def test_bringup_runs_the_tracking_world_in_lockstep_as_the_benchmark_does(tmp_p
     result = subprocess.run(
         [sys.executable, '-m', 'activeloc_ros.bringup', '--world', 'tracking:room:1', '--mode',
          'lockstep', '--record', str(record), '--log-dir', str(tmp_path / 'logs'),
-         '--ros-args', '-p', f'max_steps:={steps}', '-p', 'hidden:=32'],
+         '--ros-args', '-p', f'max_steps:={steps}', '-p', 'hidden:=32', '-p', 'num_threads:=1'],
         env=graph_env, cwd=REPO, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stdout + result.stderr
     assert 'node exit codes: tracking 0, perception 0, controller 0' in result.stdout
@@ -181,7 +181,10 @@ def test_bringup_runs_the_tracking_world_in_lockstep_as_the_benchmark_does(tmp_p
     graph = [(m.pose.pose.position.x, m.pose.pose.position.y) for m in odom]
 
     with TrackingWorld('room', 1, TrackingConfig(max_steps=steps)) as world:
-        episode = run_episode(world, ModelPointer('ours', {'seed': 0, 'hidden': 32}),
+        # one thread on both sides, as the benchmark: the encoder's and the predictor's sums
+        # run in another order on two, and the base's loop turns that into another path
+        episode = run_episode(world, ModelPointer('ours', {'seed': 0, 'hidden': 32,
+                                                           'num_threads': 1}),
                               controller=BaseConfig(), name='room')
     closed_loop = [r.base_xy for r in episode.records]
     assert len(graph) == steps
