@@ -357,8 +357,7 @@ def node_problems(node: str, values: dict) -> list[str]:
             config_from(values)
         elif node == 'perception':
             from activeloc_ros.perception.config import PerceptionConfig
-            PerceptionConfig.from_dict({k: v for k, v in values.items()
-                                        if k in PerceptionConfig.descriptions()})
+            PerceptionConfig.from_dict(PerceptionConfig.fields_in(values))
     except ConfigError as exc:
         return [str(exc)]
     return []

@@ -41,8 +41,7 @@ def bench_poses(scene: str, frames: int) -> list[tuple[float, float, float]]:
 
     control = node_values('controller')       # bringup's default: the arm's aim limits only
     perception = node_values('perception')
-    fields = PerceptionConfig.descriptions()
-    pointer = ModelPointer('ours', {k: v for k, v in perception.items() if k in fields})
+    pointer = ModelPointer('ours', PerceptionConfig.fields_in(perception))
     controller = config_from(control)
     # the screen the graph's sim node renders (its packaged params), not a default one
     world = screen_world(scene_frames(), fps=fps, screen=camera_screen(), controller=controller)

@@ -167,8 +167,7 @@ def params_file_settings(path: str) -> dict[str, Any]:
     from activeloc_ros.perception.config import PerceptionConfig
     if not Path(path).is_file():
         raise ConfigError(f'--params: no such file {path}')
-    fields = PerceptionConfig.descriptions()
-    settings = {k: v for k, v in file_values('perception', [path]).items() if k in fields}
+    settings = PerceptionConfig.fields_in(file_values('perception', [path]))
     if not settings:
         raise ConfigError(f'--params: {path} sets no perception model parameter')
     return settings

@@ -223,6 +223,13 @@ class PerceptionConfig:
         return dataclasses.asdict(self)
 
     @classmethod
+    def fields_in(cls, values: dict[str, Any]) -> dict[str, Any]:
+        """The entries of `values` that are fields of this config (a perception node's
+        parameters hold its own too)."""
+        names = _field_names(cls)
+        return {k: v for k, v in values.items() if k in names}
+
+    @classmethod
     def descriptions(cls) -> dict[str, str]:
         return {f.name: f.metadata['help'] for f in dataclasses.fields(cls)}
 
