@@ -17,7 +17,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
 from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.nodes.messages import camera_info, time_from_s
-from activeloc_ros.nodes.ros_params import declare, node_help, Param, run, wake_in
+from activeloc_ros.nodes.ros_params import declare, frame_due, node_help, Param, run
 from activeloc_ros.sources import default_bag, open_source, Pacer, pinhole_matrix, Playback
 
 # Parameters without read_only take effect at once: the next frame uses them.
@@ -107,13 +107,9 @@ class CameraNode(Node):
             if self.pending is None:
                 self._end_of_stream()
                 return
-        if not self.source.live:
-            now = time.monotonic()
-            due = self.pacer.due(self.pending.stamp, now)
-            if now < due:
-                wake_in(self.timer, due - now)
-                return
-            wake_in(self.timer, 0.0)
+        if not (self.source.live or frame_due(
+                self.timer, self.pacer.due(self.pending.stamp, time.monotonic()))):
+            return
         self.publish(self.pending)
         self.pending = None
         if self.params['max_frames'] and self.published >= self.params['max_frames']:

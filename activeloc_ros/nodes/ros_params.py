@@ -23,6 +23,7 @@ import re
 import signal
 import sys
 import textwrap
+import time
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from rcl_interfaces.msg import (
@@ -340,11 +341,14 @@ def wants_help(args: Sequence[str]) -> bool:
     return any(a in ('-h', '--help') for a in ours)
 
 
-def wake_in(timer, seconds: float) -> None:
-    """Let a camera's timer sleep until its next frame is due, ``seconds`` from now (1 ms to
-    50 ms), instead of polling."""
-    timer.timer_period_ns = int(min(max(seconds, 0.001), 0.05) * 1e9)
+def frame_due(timer, due: float) -> bool:
+    """Is a replayed frame due at ``due`` (monotonic seconds) now? If not, the camera's
+    timer sleeps until then (at most 50 ms) instead of polling; if so, it comes back in
+    1 ms for the frame after."""
+    wait = due - time.monotonic()
+    timer.timer_period_ns = int(min(max(wait, 0.001), 0.05) * 1e9)
     timer.reset()
+    return wait <= 0
 
 
 def lean_executor(context=None):

@@ -32,7 +32,7 @@ from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.nodes.lockstep import Lockstep, time_ns
 from activeloc_ros.nodes.messages import (
     arm_joints_deg, camera_info, joint_state, stamp_ns, time_from_ns)
-from activeloc_ros.nodes.ros_params import declare, node_help, Param, run, wake_in
+from activeloc_ros.nodes.ros_params import declare, frame_due, node_help, Param, run
 from activeloc_ros.nodes.settings import MAPPING_PARAMS, mapping_from, SCREEN_PARAMS, screen_from
 from activeloc_ros.screen import VirtualScreen
 from activeloc_ros.sources import (
@@ -202,12 +202,9 @@ class SimNode(Node):
                 self._end_of_stream()
                 return
         index, rgb = self.pending
-        now = time.monotonic()
-        due = self.pacer.due(frame_time(index, self.fps), now)
-        if now < due:
-            wake_in(self.timer, due - now)
+        if not frame_due(self.timer, self.pacer.due(frame_time(index, self.fps),
+                                                    time.monotonic())):
             return
-        wake_in(self.timer, 0.0)
         self.pending = None
         self.world.show(index, rgb, FrameTruth(index, None, ()), self._now())
         self.world.advance(self.world.t)
