@@ -419,7 +419,7 @@ def run(node_factory: Callable[..., Any], args=None, *,
         print(f'error: {exc}', file=sys.stderr)
         return 1
     finally:
-        if executor is not None and node is not None:
+        if executor is not None:              # (only ever made once the node exists)
             executor.remove_node(node)        # on_stop may spin the node on its own
         if node is not None:
             if on_stop is not None and rclpy.ok():
