@@ -57,12 +57,16 @@ def test_perception_yaml_repeats_the_model_defaults():
         assert values[field.name] == field.default, f'perception.yaml: stale {field.name}'
 
 
-def test_the_mirrored_border_params_file_passes_bringups_checks_and_sets_the_border():
+@pytest.mark.parametrize('name, expected', [
+    ('mirrored_border.yaml', {'encoder_pad': 32, 'conv_padding': 'zeros'}),
+    ('two_lstms.yaml', {'layers': 2}),
+])
+def test_each_other_configuration_passes_bringups_checks_and_sets_its_values(name, expected):
     from activeloc_ros.bringup import check_node_params, node_values, parse_args
-    path = str(PARAMS / 'mirrored_border.yaml')
+    path = str(PARAMS / name)
     check_node_params(parse_args(['--params', path]))      # raises on any bad key or value
     values = node_values('perception', [path])
-    assert (values['encoder_pad'], values['conv_padding']) == (32, 'zeros')
+    assert {key: values[key] for key in expected} == expected
 
 
 # -- params files: nothing in them passes in silence (issue 13, item 9) ---------------------
