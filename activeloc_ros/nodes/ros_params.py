@@ -342,9 +342,9 @@ def wants_help(args: Sequence[str]) -> bool:
 
 
 def frame_due(timer, due: float) -> bool:
-    """Is a replayed frame due at ``due`` (monotonic seconds) now? If not, the camera's
-    timer sleeps until then (at most 50 ms) instead of polling; if so, it comes back in
-    1 ms for the frame after."""
+    """Is a paced frame (a replayed camera's, a world's real-time step) due at ``due``
+    (monotonic seconds) now? If not, the node's timer sleeps until then (at most 50 ms)
+    instead of polling; if so, it comes back in 1 ms for the frame after."""
     wait = due - time.monotonic()
     timer.timer_period_ns = int(min(max(wait, 0.001), 0.05) * 1e9)
     timer.reset()

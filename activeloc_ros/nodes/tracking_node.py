@@ -35,7 +35,7 @@ from activeloc_ros.errors import ConfigError
 from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.nodes.lockstep import ANSWER, Lockstep
 from activeloc_ros.nodes.messages import camera_info, stamp_ns, time_from_ns
-from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
+from activeloc_ros.nodes.ros_params import declare, frame_due, node_help, Param, run
 from activeloc_ros.tracking.scenes import SCENES
 from activeloc_ros.tracking.world import TARGETS, TrackingConfig, TrackingWorld
 
@@ -161,7 +161,7 @@ class TrackingNode(Node):
                 return
             if self.lockstep is not None:
                 self._lockstep_tick()
-            elif time.monotonic() >= self.due:
+            elif frame_due(self.timer, self.due):
                 self.due = time.monotonic() + self.world.config.step / self.params['rate']
                 if self._step():
                     self.world.advance(self.world.t)
