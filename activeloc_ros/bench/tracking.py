@@ -392,7 +392,7 @@ def parser() -> argparse.ArgumentParser:
                    help="the target's behaviour, gym-unrealcv's Nav (default) or Ram")
     p.add_argument('--forward', choices=FORWARD_RULES, default=None,
                    help='how the base drives forward, for every method (default the '
-                        "controller's, size)")
+                        "controller's, ground)")
     p.add_argument('--world', nargs='+', action='extend', metavar='KEY=VALUE', default=[],
                    help='TrackingConfig fields, e.g. max_steps=200 lost_steps=20')
     p.add_argument('--control', nargs='+', action='extend', metavar='KEY=VALUE', default=[],
