@@ -137,6 +137,8 @@ def test_bench_tracking_smoke(tmp_path, capsys):
     assert '| oracle | 1.00 |' in text           # all 12 steps of 12
     result = json.loads((out / 'tracking.json').read_text())
     assert {r['method'] for r in result['methods']} == {'ours', 'kcf', 'oracle'}
+    oracle = next(r for r in result['methods'] if r['method'] == 'oracle')
+    assert 2.0 < oracle['scenes']['room']['distance_m'] < 3.5   # starts 2.5 m behind, keeps it
     for name in ('table1.md', 'table1.csv', 'room.png'):
         assert (out / name).stat().st_size > 0
     with av.open(str(out / 'videos' / 'room' / 'ours-0.mp4')) as container:
