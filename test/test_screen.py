@@ -291,6 +291,15 @@ def test_cli_refuses_bad_options(tmp_path, capsys, args, message):
     assert message in capsys.readouterr().err
 
 
+def test_control_sets_the_pd_gains_but_not_a_pd_variants():
+    assert bench.controller_for('ours', {'kp': 0.5, 'kd': 0.2}).pd.kp == 0.5
+    assert bench.controller_for('oracle', {'kd': 0.2}).pd.kd == 0.2
+    paper = bench.controller_for('ours-pd-paper', {'kp': 0.5, 'dead_band': 0.01}).pd
+    assert (paper.kp, paper.kd, paper.dead_band) == (1.0, 0.1, 0.01)
+    with pytest.raises(ConfigError, match='kp'):
+        bench.controller_for('ours', {'kp': -1.0})
+
+
 def test_help(capsys):
     with pytest.raises(SystemExit) as exc:
         bench.main(['--help'])

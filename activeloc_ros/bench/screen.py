@@ -84,17 +84,20 @@ def make_pointer(name: str, settings: dict, seed: int, *, tracker_start: str = '
     return ModelPointer(name, {'seed': seed, **settings, **overrides})
 
 
-PD_OPTIONS = ('dead_band', 'derivative', 'derivative_tau')
+PD_OPTIONS = ('kp', 'kd', 'dead_band', 'derivative', 'derivative_tau')
 CONTROL_OPTIONS = ('settle_time', 'watchdog_timeout', 'step_delay_ms', 'min_peak',
                    'pan_limit_deg', 'tilt_limit_deg')
 
 
 def method_pd(name: str, control: dict) -> PDConfig:
-    """The PD law of a method: its Table 3 variant's gains, else the default's, with the
-    `PD_OPTIONS` among the --control settings."""
+    """The PD law of a method: its Table 3 variant's gains (whatever --control says of kp and
+    kd), else the default's, with the `PD_OPTIONS` among the --control settings."""
     variant = method_parts(name)[1] if name in MODEL_METHODS else None
     pd_options = {k: v for k, v in control.items() if k in PD_OPTIONS}
-    return PDConfig.variant(variant, **pd_options) if variant else PDConfig(**pd_options)
+    if variant:
+        return PDConfig.variant(variant, **{k: v for k, v in pd_options.items()
+                                            if k not in ('kp', 'kd')})
+    return PDConfig(**pd_options)
 
 
 def controller_for(name: str, control: dict, screen: VirtualScreen | None = None
@@ -404,8 +407,9 @@ def parser() -> argparse.ArgumentParser:
                    help='ScreenConfig fields, e.g. view_fraction=0.3 width=640 height=480')
     p.add_argument('--control', nargs='+', action='extend', metavar='KEY=VALUE', default=[],
                    help='controller settings for every method: ' + ', '.join(
-                       PD_OPTIONS + CONTROL_OPTIONS) + " (dead_band in radians; "
-                   "derivative=error is the paper's literal PD)")
+                       PD_OPTIONS + CONTROL_OPTIONS) + " (dead_band in radians; kp and kd "
+                   "leave an ours-pd-* variant's gains; derivative=error is the paper's "
+                   "literal PD)")
     p.add_argument('--aim-limits', choices=AIM_LIMITS, default='arm',
                    help="how far the camera may turn: 'arm' (default) only the arm's joints "
                         "limit it, and past the screen's edge it sees the plain wall, as the "
