@@ -106,9 +106,16 @@ def peak_point(heatmap: np.ndarray, image_wh: tuple[float, float]) -> tuple[floa
 
 
 def blob_box(heatmap: np.ndarray, image_wh: tuple[float, float], *,
-             share: float = 0.5) -> tuple[float, float, float, float] | None:
+             share: float = 0.15) -> tuple[float, float, float, float] | None:
     """The box (x, y, w, h; px) of the map's blob: the cells connected to its peak cell
-    that reach ``share`` of the peak. None for a map with no positive peak.
+    whose logarithm lies at least ``share`` of the way from the map's smallest positive
+    value up to its peak. None for a map with no positive peak.
+
+    A surprise map is a softmax of the prediction error, so this is ``share`` of the
+    error's range over the cells: at 0.15 the blob spans the moving person, whose top
+    (head, shoulders) is the most surprising. The earlier rule, cells above half the peak,
+    held only that top; the base read its bottom as the person's feet and drove up to
+    within 0.8-0.9 m of them (README, active tracking).
 
     Its corners are float32 numbers, the precision of the message that carries them
     (`action_region`, geometry_msgs/Point32), so a controller in the graph and one in the
@@ -117,7 +124,11 @@ def blob_box(heatmap: np.ndarray, image_wh: tuple[float, float], *,
     peak = float(m.max()) if m.size else 0.0
     if not (math.isfinite(peak) and peak > 0):
         return None
-    _, labels = cv2.connectedComponents((m >= share * peak).astype(np.uint8), connectivity=4)
+    floor = float(m[m > 0].min())
+    with np.errstate(divide='ignore'):
+        level = np.log(m / floor)                 # -inf where the map is 0: never kept
+    keep = level >= share * math.log(peak / floor)
+    _, labels = cv2.connectedComponents(keep.astype(np.uint8), connectivity=4)
     rows, cols = np.nonzero(labels == labels[peak_cell(m)])
     cw, ch = cell_size(m.shape, image_wh)
     x0, y0, x1, y1 = (float(np.float32(v)) for v in (

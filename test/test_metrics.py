@@ -226,6 +226,20 @@ def test_blob_box_is_the_peak_cells_connected_blob():
     heat[3:6, 4:6] = 1.0           # the blob round the peak
     heat[4, 5] = 2.0
     heat[10, 10] = 1.5             # as strong, but apart
-    x, y, w, h = metrics.blob_box(heat, (140, 280))
+    x, y, w, h = metrics.blob_box(heat, (140, 280), share=0.0)
     assert (x, y, w, h) == (40.0, 60.0, 20.0, 60.0)
     assert metrics.blob_box(np.zeros((14, 14)), (140, 280)) is None
+
+
+def test_blob_box_of_a_surprise_map_spans_the_person_not_only_its_head():
+    """A surprise map is a softmax of the error: the head most surprising, the body below
+    it less, the floor not at all. The blob reaches down to the feet, where the base reads
+    the person's distance; half the peak held the head alone."""
+    error = np.zeros((14, 14))
+    error[3, 6] = 2.0              # head
+    error[4:9, 6] = 0.6            # body, down to the feet in row 8
+    error[2, 11] = 1.8             # a passer-by's head, apart
+    heat = np.exp(error) / np.exp(error).sum()
+    assert metrics.blob_box(heat, (140, 140)) == (60.0, 30.0, 10.0, 60.0)
+    head_only = heat >= 0.5 * heat.max()
+    assert head_only.sum() == 2 and not head_only[4:9].any()
