@@ -291,7 +291,7 @@ def test_cli_refuses_bad_options(tmp_path, capsys, args, message):
     assert message in capsys.readouterr().err
 
 
-def test_control_sets_the_pd_gains_but_not_a_pd_variants():
+def test_control_kp_and_kd_set_the_gains_of_every_method_but_a_pd_variant():
     assert bench.controller_for('ours', {'kp': 0.5, 'kd': 0.2}).pd.kp == 0.5
     assert bench.controller_for('oracle', {'kd': 0.2}).pd.kd == 0.2
     paper = bench.controller_for('ours-pd-paper', {'kp': 0.5, 'dead_band': 0.01}).pd
