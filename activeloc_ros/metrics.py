@@ -111,11 +111,11 @@ def blob_box(heatmap: np.ndarray, image_wh: tuple[float, float], *,
     whose logarithm lies at least ``share`` of the way from the map's smallest positive
     value up to its peak. None for a map with no positive peak.
 
-    A surprise map is a softmax of the prediction error, so this is ``share`` of the
-    error's range over the cells: at 0.15 the blob spans the moving person, whose top
-    (head, shoulders) is the most surprising. The earlier rule, cells above half the peak,
-    held only that top; the base read its bottom as the person's feet and drove up to
-    within 0.8-0.9 m of them (README, active tracking).
+    A surprise map is a softmax of the prediction error, so the bar stands ``share`` of
+    the way up the error's range over the cells: at 0.15 the blob spans the moving person,
+    whose top (head, shoulders) is the most surprising. The earlier rule, cells above half
+    the peak, held only that top; the base read its bottom as the person's feet and drove
+    up to within 0.8-0.9 m of them (README, active tracking).
 
     Its corners are float32 numbers, the precision of the message that carries them
     (`action_region`, geometry_msgs/Point32), so a controller in the graph and one in the
