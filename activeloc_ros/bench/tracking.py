@@ -401,7 +401,7 @@ def parser() -> argparse.ArgumentParser:
                    help='TrackingConfig fields, e.g. max_steps=200 lost_steps=20')
     p.add_argument('--control', nargs='+', action='extend', metavar='KEY=VALUE', default=[],
                    help='base controller settings for every method (BaseConfig fields and '
-                        'kp, kd, dead_band, derivative, derivative_tau), e.g. pace=0.8')
+                        + ', '.join(PD_OPTIONS) + '), e.g. pace=0.8')
     p.add_argument('--set', nargs='+', action='extend', metavar='KEY=VALUE', default=[],
                    help='PerceptionConfig fields for every model method, e.g. lr=1e-4')
     p.add_argument('--jobs', type=int, default=min(2, os.cpu_count() or 1), metavar='N',
