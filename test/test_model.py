@@ -178,6 +178,18 @@ def test_the_mass_location_is_the_centroid_of_the_cells_near_the_peak():
     assert everything == pytest.approx((3.0, 2.0))            # the map's middle
 
 
+def test_the_floor_keeps_a_flat_maps_even_surprise_from_pulling_the_location_to_the_middle():
+    grid = torch.full((14, 14), 0.004)          # an even pedestal over the whole view
+    grid[2, 10] = grid[3, 10] = 0.02            # and the action on it
+    x, y = P.action_location(grid, 'mass', 0.0)
+    assert abs(x - 7.0) < 1.0 and abs(y - 7.0) < 1.5           # the pedestal's middle wins
+    assert P.action_location(grid, 'mass', 0.0, floor='min') == pytest.approx((10.5, 3.0))
+    assert P.action_location(grid, 'mass', 0.25, floor='min') == pytest.approx((10.5, 3.0))
+    assert P.action_location(grid, 'peak', 0.0, floor='min') == (10.5, 2.5)   # no effect
+    flat = torch.full((14, 14), 1 / 196)        # nothing above the floor: the middle
+    assert P.action_location(flat, 'mass', 0.0, 5.0, 'min') == (7.0, 7.0)
+
+
 def test_the_location_prior_prefers_the_surprise_nearer_where_the_camera_looks():
     grid = torch.full((14, 14), 0.001)
     grid[6, 7] = grid[0, 0] = 0.3              # equally surprising: the middle and a corner
@@ -189,12 +201,13 @@ def test_the_location_prior_prefers_the_surprise_nearer_where_the_camera_looks()
 
 
 def test_the_model_reports_the_mass_location_in_frame_pixels():
-    model = make(location='mass', location_share=0.0)
+    model = make(location='mass', location_share=0.0, location_floor='min')
     frames = clip(3, h=37, w=53)
     for frame in frames:
         res = model.step(frame)
     m = torch.from_numpy(res.surprise_map)
-    x, y = P.action_location(m, 'mass', 0.0, model.cfg.location_prior)
+    x, y = P.action_location(m, 'mass', 0.0, model.cfg.location_prior,
+                             model.cfg.location_floor)
     assert res.location_px == pytest.approx((x * 53 / model.grid, y * 37 / model.grid))
 
 

@@ -131,6 +131,12 @@ class PerceptionConfig:
     location_share: float = _param(
         0.25, 'with location mass, the share of the peak value a cell needs to count',
         in_range(0.0, 1.0))
+    location_floor: str = _param(
+        'zero', 'with location mass, what the cells that count are weighted by: zero = their '
+        'map value; min = their height above the map\'s lowest cell, so the even surprise a '
+        'flat map spreads over the whole view does not pull the location to the view\'s '
+        'centre (with location_share 0: closer on the single-actor sequences, farther on '
+        'the crowd and the passing cars; README, Measured defaults)', one_of('zero', 'min'))
     location_prior: float = _param(
         5.0, 'width (cells, a Gaussian\'s sigma) of a prior on the image centre that weights '
         'the map before the location is read from it: of two equally surprising places the '

@@ -447,7 +447,8 @@ class SurpriseModel:
         h, w = frame.shape[:2]
         rows = n // g
         x, y = action_location(probs.reshape(rows, g), self.cfg.location,
-                               self.cfg.location_share, self.cfg.location_prior)
+                               self.cfg.location_share, self.cfg.location_prior,
+                               self.cfg.location_floor)
         timings['total'] = time.perf_counter() - t0
         return PerceptionResult(
             surprise_map=probs.reshape(rows, g).numpy().astype(np.float32),

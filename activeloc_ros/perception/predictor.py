@@ -97,19 +97,24 @@ def surprise_map(e: torch.Tensor, temperature: float) -> torch.Tensor:
 
 
 def action_location(grid: torch.Tensor, kind: str, share: float,
-                    prior: float = 0.0) -> tuple[float, float]:
+                    prior: float = 0.0, floor: str = 'zero') -> tuple[float, float]:
     """(x, y) of the action on a (rows, cols) map, in cells (0.5 = the first cell's centre):
-    'peak' the argmax cell's centre; 'mass' the map-weighted centroid of the cells that
-    reach `share` of the peak. With `prior` > 0 the map is first weighted by a Gaussian of
-    that width (cells) on the grid's centre, where the camera looks."""
+    'peak' the argmax cell's centre; 'mass' the centroid of the cells that reach `share` of
+    the peak, each weighted by its map value (`floor` 'zero') or by its height above the
+    map's lowest cell ('min'; a map with nothing above its floor gives the grid's centre).
+    With `prior` > 0 the map is first weighted by a Gaussian of that width (cells) on the
+    grid's centre, where the camera looks."""
     rows, cols = grid.shape
     ys, xs = torch.meshgrid(torch.arange(rows) + 0.5, torch.arange(cols) + 0.5, indexing='ij')
-    if prior > 0:
-        grid = grid * torch.exp(-((xs - cols / 2) ** 2 + (ys - rows / 2) ** 2)
-                                / (2 * prior ** 2))
+    near = (torch.exp(-((xs - cols / 2) ** 2 + (ys - rows / 2) ** 2) / (2 * prior ** 2))
+            if prior > 0 else torch.ones(()))
+    weighted = grid * near
     if kind == 'peak':
-        row, col = divmod(int(torch.argmax(grid)), cols)
+        row, col = divmod(int(torch.argmax(weighted)), cols)
         return col + 0.5, row + 0.5
-    weight = torch.where(grid >= share * grid.max(), grid, torch.zeros(()))
+    height = (grid - grid.min()) * near if floor == 'min' else weighted
+    weight = torch.where(weighted >= share * weighted.max(), height, torch.zeros(()))
     total = weight.sum()
+    if total <= 0:
+        return cols / 2, rows / 2
     return float((weight * xs).sum() / total), float((weight * ys).sum() / total)
