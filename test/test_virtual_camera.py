@@ -283,7 +283,7 @@ def test_realtime_sim_moves_its_arm_and_the_camera_with_it(context):
         probe.node.destroy_node()
     assert list(probe.infos[-1].k) == pytest.approx(VirtualScreen().K.ravel())
     base = [math.degrees(s.position[0]) for s in probe.states]
-    assert base == sorted(base)
+    assert base[-1] == pytest.approx(90.0 + 12.0) and base == sorted(base)
 
 
 def test_lockstep_graph_steps_frame_by_frame_like_closed_loop(context):
