@@ -76,7 +76,7 @@ def test_graph_in_one_executor(context):
     for msg, loc in zip(probe.maps, probe.locations):
         grid = torch.tensor(msg.data, dtype=torch.float32).reshape(14, 14)
         x, y = action_location(grid, cfg.location, cfg.location_share, cfg.location_prior,
-                               cfg.location_floor)
+                               cfg.location_floor, region_share=cfg.location_region_share)
         assert (loc.point.x, loc.point.y) == pytest.approx((x * 640 / 14, y * 480 / 14),
                                                            abs=0.5)
         assert loc.point.z == pytest.approx(float(grid.max()), rel=1e-5)

@@ -200,14 +200,32 @@ def test_the_location_prior_prefers_the_surprise_nearer_where_the_camera_looks()
     assert P.action_location(grid, 'peak', 0.25, 5.0) == (0.5, 0.5)
 
 
-def test_the_model_reports_the_mass_location_in_frame_pixels():
-    model = make(location='mass', location_share=0.0, location_floor='min')
+def test_the_region_location_is_the_centre_of_the_blob_round_the_peak():
+    grid = torch.full((14, 14), 0.001)
+    grid[2, 10] = 0.05                          # the head, most surprising
+    grid[3:9, 10] = 0.01                        # the body below it, halfway up the log range
+    grid[12, 2] = 0.02                          # a stray surprise above the body, apart
+    assert P.action_location(grid, 'peak', 0.25) == (10.5, 2.5)
+    assert P.action_location(grid, 'region', 0.25) == pytest.approx((10.5, 5.5))
+    head = P.action_location(grid, 'region', 0.25, region_share=0.7)   # the body is below
+    assert head == pytest.approx((10.5, 2.5))
+    flat = torch.full((14, 14), 1 / 196)        # every cell is the blob: the middle
+    assert P.action_location(flat, 'region', 0.25, 5.0) == (7.0, 7.0)
+
+
+@pytest.mark.parametrize('settings', [
+    {'location': 'mass', 'location_share': 0.0, 'location_floor': 'min'},
+    {'location': 'region', 'location_region_share': 0.4},
+])
+def test_the_model_reports_its_location_in_frame_pixels(settings):
+    model = make(**settings)
     frames = clip(3, h=37, w=53)
     for frame in frames:
         res = model.step(frame)
     m = torch.from_numpy(res.surprise_map)
-    x, y = P.action_location(m, 'mass', 0.0, model.cfg.location_prior,
-                             model.cfg.location_floor)
+    cfg = model.cfg
+    x, y = P.action_location(m, cfg.location, cfg.location_share, cfg.location_prior,
+                             cfg.location_floor, region_share=cfg.location_region_share)
     assert res.location_px == pytest.approx((x * 53 / model.grid, y * 37 / model.grid))
 
 

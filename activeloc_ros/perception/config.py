@@ -126,8 +126,11 @@ class PerceptionConfig:
     location: str = _param(
         'mass', 'where the action is: peak = the centre of the map\'s argmax cell (paper); '
         'mass = the centroid of the cells that reach location_share of the peak, which '
-        'follows a group rather than the one cell of it that is most surprising this frame',
-        one_of('peak', 'mass'))
+        'follows a group rather than the one cell of it that is most surprising this frame; '
+        'region = the centre of the box round the blob of cells connected to the peak that '
+        'stand location_region_share of the way up the log map\'s range: the whole moving '
+        'person, where the peak and the centroid sit on the head and shoulders',
+        one_of('peak', 'mass', 'region'))
     location_share: float = _param(
         0.25, 'with location mass, the share of the peak value a cell needs to count',
         in_range(0.0, 1.0))
@@ -138,6 +141,10 @@ class PerceptionConfig:
         'centre (with location_share 0 on the screen benchmark: 1.1 and 2.5 deg closer on '
         'tud_stadtmitte and walking2, farther on kitti_17 and otb_crossing; README, Measured '
         'defaults)', one_of('zero', 'min'))
+    location_region_share: float = _param(
+        0.5, 'with location region, how far up the map\'s range, from its lowest cell to its '
+        'peak on a log scale (the prediction error\'s range), a cell must stand to join the '
+        'peak\'s blob (0 = every connected cell, 1 = the peak alone)', in_range(0.0, 1.0))
     location_prior: float = _param(
         5.0, 'width (cells, a Gaussian\'s sigma) of a prior on the image centre that weights '
         'the map before the location is read from it: of two equally surprising places the '

@@ -448,7 +448,8 @@ class SurpriseModel:
         rows = n // g
         x, y = action_location(probs.reshape(rows, g), self.cfg.location,
                                self.cfg.location_share, self.cfg.location_prior,
-                               self.cfg.location_floor)
+                               self.cfg.location_floor,
+                               region_share=self.cfg.location_region_share)
         timings['total'] = time.perf_counter() - t0
         return PerceptionResult(
             surprise_map=probs.reshape(rows, g).numpy().astype(np.float32),

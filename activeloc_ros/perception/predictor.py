@@ -8,6 +8,7 @@ location off the map. `perception.model.SurpriseModel` runs them online, one fra
 import torch
 from torch import nn
 
+from activeloc_ros import metrics
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.perception.config import PerceptionConfig
 
@@ -97,11 +98,16 @@ def surprise_map(e: torch.Tensor, temperature: float) -> torch.Tensor:
 
 
 def action_location(grid: torch.Tensor, kind: str, share: float,
-                    prior: float = 0.0, floor: str = 'zero') -> tuple[float, float]:
+                    prior: float = 0.0, floor: str = 'zero', *,
+                    region_share: float = 0.5) -> tuple[float, float]:
     """(x, y) of the action on a (rows, cols) map, in cells (0.5 = the first cell's centre):
     'peak' the argmax cell's centre; 'mass' the centroid of the cells that reach `share` of
     the peak, each weighted by its map value (`floor` 'zero') or by its height above the
-    map's lowest cell ('min'; a map with nothing above its floor gives the grid's centre).
+    map's lowest cell ('min'; a map with nothing above its floor gives the grid's centre);
+    'region' the centre of the box round the peak's blob (`metrics.blob_box` with
+    `region_share`): the cells connected to the peak whose log stands at least that share
+    of the way from the map's lowest cell up to its peak, the whole moving person rather
+    than the head and shoulders that are most surprising.
     With `prior` > 0 the map is first weighted by a Gaussian of that width (cells) on the
     grid's centre, where the camera looks."""
     rows, cols = grid.shape
@@ -112,6 +118,12 @@ def action_location(grid: torch.Tensor, kind: str, share: float,
     if kind == 'peak':
         row, col = divmod(int(torch.argmax(weighted)), cols)
         return col + 0.5, row + 0.5
+    if kind == 'region':
+        box = metrics.blob_box(weighted.numpy(), (cols, rows), share=region_share)
+        if box is None:
+            return cols / 2, rows / 2
+        x, y, w, h = box
+        return x + w / 2, y + h / 2
     height = (grid - grid.min()) * near if floor == 'min' else weighted
     weight = torch.where(weighted >= share * weighted.max(), height, torch.zeros(()))
     total = weight.sum()
