@@ -66,7 +66,7 @@ def test_graph_in_one_executor(context):
         grid = np.asarray(msg.data).reshape(14, 14)
         assert np.all(grid >= 0) and grid.sum() == pytest.approx(1.0, abs=1e-3)
     # maps come in frame order: each is followed by its location, stamps increase, and the
-    # location is the one the packaged settings (location: mass) take from that map
+    # location is the one the packaged settings (location: region) take from that map
     import torch
     from activeloc_ros.perception.config import PerceptionConfig
     from activeloc_ros.perception.predictor import action_location

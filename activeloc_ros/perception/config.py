@@ -124,7 +124,7 @@ class PerceptionConfig:
     map_temperature: float = _param(
         1.0, 'softmax temperature of the surprise map over the cells (paper: 1)', above(0.0))
     location: str = _param(
-        'mass', 'where the action is: peak = the centre of the map\'s argmax cell (paper); '
+        'region', 'where the action is: peak = the centre of the map\'s argmax cell (paper); '
         'mass = the centroid of the cells that reach location_share of the peak, which '
         'follows a group rather than the one cell of it that is most surprising this frame; '
         'region = the centre of the box round the blob of cells connected to the peak that '
