@@ -203,14 +203,15 @@ def test_the_location_prior_prefers_the_surprise_nearer_where_the_camera_looks()
 def test_the_region_location_is_the_centre_of_the_blob_round_the_peak():
     grid = torch.full((14, 14), 0.001)
     grid[2, 10] = 0.05                          # the head, most surprising
-    grid[3:9, 10] = 0.01                        # the body below it, halfway up the log range
-    grid[12, 2] = 0.02                          # a stray surprise above the body, apart
+    grid[3:9, 10] = 0.01                        # the body below it, 0.59 up the log range
+    grid[12, 2] = 0.02                          # a stray surprise, not connected to them
     assert P.action_location(grid, 'peak', 0.25) == (10.5, 2.5)
     assert P.action_location(grid, 'region', 0.25) == pytest.approx((10.5, 5.5))
     head = P.action_location(grid, 'region', 0.25, region_share=0.7)   # the body is below
     assert head == pytest.approx((10.5, 2.5))
-    flat = torch.full((14, 14), 1 / 196)        # every cell is the blob: the middle
-    assert P.action_location(flat, 'region', 0.25, 5.0) == (7.0, 7.0)
+    flat = torch.full((14, 14), 1 / 196)        # no information: the middle
+    assert P.action_location(flat, 'region', 0.25) == (7.0, 7.0)        # all one blob
+    assert P.action_location(flat, 'region', 0.25, 5.0) == (7.0, 7.0)   # the prior's disc
 
 
 @pytest.mark.parametrize('settings', [
