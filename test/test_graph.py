@@ -69,14 +69,13 @@ def test_graph_in_one_executor(context):
     # location is the one the packaged settings (location: region) take from that map
     import torch
     from activeloc_ros.perception.config import PerceptionConfig
-    from activeloc_ros.perception.predictor import action_location
+    from activeloc_ros.perception.predictor import configured_location
     cfg = PerceptionConfig()
     stamps = [loc.header.stamp.sec + loc.header.stamp.nanosec * 1e-9 for loc in probe.locations]
     assert all(b > a for a, b in zip(stamps, stamps[1:]))
     for msg, loc in zip(probe.maps, probe.locations):
         grid = torch.tensor(msg.data, dtype=torch.float32).reshape(14, 14)
-        x, y = action_location(grid, cfg.location, cfg.location_share, cfg.location_prior,
-                               cfg.location_floor, region_share=cfg.location_region_share)
+        x, y = configured_location(grid, cfg)
         assert (loc.point.x, loc.point.y) == pytest.approx((x * 640 / 14, y * 480 / 14),
                                                            abs=0.5)
         assert loc.point.z == pytest.approx(float(grid.max()), rel=1e-5)

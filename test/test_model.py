@@ -224,9 +224,9 @@ def test_the_model_reports_its_location_in_frame_pixels(settings):
     for frame in frames:
         res = model.step(frame)
     m = torch.from_numpy(res.surprise_map)
-    cfg = model.cfg
-    x, y = P.action_location(m, cfg.location, cfg.location_share, cfg.location_prior,
-                             cfg.location_floor, region_share=cfg.location_region_share)
+    x, y = P.action_location(m, settings['location'], model.cfg.location_share,
+                             model.cfg.location_prior, model.cfg.location_floor,
+                             region_share=model.cfg.location_region_share)
     assert res.location_px == pytest.approx((x * 53 / model.grid, y * 37 / model.grid))
 
 

@@ -81,7 +81,7 @@ from activeloc_ros.perception import egomotion, motion
 from activeloc_ros.perception.config import PerceptionConfig
 from activeloc_ros.perception.features import Features, resolve_precision
 from activeloc_ros.perception.predictor import (
-    action_location, attention_loss, global_error, motion_weight, Predictor, surprise_map)
+    attention_loss, configured_location, global_error, motion_weight, Predictor, surprise_map)
 
 _NO_LOSSES = {'global': 0.0, 'attn': 0.0, 'total': 0.0}
 
@@ -446,10 +446,7 @@ class SurpriseModel:
         row, col = divmod(flat, g)
         h, w = frame.shape[:2]
         rows = n // g
-        x, y = action_location(probs.reshape(rows, g), self.cfg.location,
-                               self.cfg.location_share, self.cfg.location_prior,
-                               self.cfg.location_floor,
-                               region_share=self.cfg.location_region_share)
+        x, y = configured_location(probs.reshape(rows, g), self.cfg)
         timings['total'] = time.perf_counter() - t0
         return PerceptionResult(
             surprise_map=probs.reshape(rows, g).numpy().astype(np.float32),

@@ -97,6 +97,12 @@ def surprise_map(e: torch.Tensor, temperature: float) -> torch.Tensor:
     return torch.softmax(e / temperature, dim=0)                # (N,)
 
 
+def configured_location(grid: torch.Tensor, cfg: PerceptionConfig) -> tuple[float, float]:
+    """`action_location` with the location settings of `cfg`."""
+    return action_location(grid, cfg.location, cfg.location_share, cfg.location_prior,
+                           cfg.location_floor, region_share=cfg.location_region_share)
+
+
 def action_location(grid: torch.Tensor, kind: str, share: float,
                     prior: float = 0.0, floor: str = 'zero', *,
                     region_share: float = 0.5) -> tuple[float, float]:
