@@ -14,8 +14,8 @@ rate) and the arm moves at its servos' speed. The camera captures at ``camera_fp
 Two modes:
 
 - ``lockstep``: every captured frame is processed and its command reaches the arm at its
-  capture time (zero compute time); deterministic. The ROS graph reproduces it with a
-  simulated clock.
+  capture time (zero compute time), or a fixed ``latency_s`` after it; deterministic. The
+  ROS graph reproduces it with a simulated clock.
 - ``realtime``: processing a frame takes the pointer's measured wall time; frames that
   arrive while it is busy wait in a one-deep queue where the newest wins (the perception
   node's image queue). Each command reaches the arm when its location was ready: the end
@@ -149,7 +149,7 @@ def screen_world(frames: Iterable[tuple[int, np.ndarray, FrameTruth]], *, fps: f
 
 
 def run_episode(world, pointer: Pointer, *, controller,
-                mode: str = 'lockstep', name: str = '',
+                mode: str = 'lockstep', latency_s: float = 0.0, name: str = '',
                 on_frame: Callable[[np.ndarray | None, FrameRecord, np.ndarray | None], None]
                 | None = None) -> Episode:
     """Step a world through the closed loop until its frames end.
@@ -158,12 +158,19 @@ def run_episode(world, pointer: Pointer, *, controller,
         (`screen_world`), or a `tracking.world.TrackingWorld`.
     :param controller: the config of the world's controller (`world.controller` builds it):
         `ControllerConfig` for the arm, `control.base.BaseConfig` for the base.
+    :param latency_s: lockstep only: each location reaches the controller, and its command
+        the actuator, this long after its frame's capture: a fixed compute time in place of
+        realtime's measured one, so its cost is deterministic.
     :param on_frame: called with each scene frame (None in the tracking world), its record
         and the camera image (None when the camera captured nothing at that frame), e.g. to
         write a video.
     """
     if mode not in MODES:
         raise ConfigError(f'mode must be one of {list(MODES)}, got {mode!r}')
+    if not (math.isfinite(latency_s) and latency_s >= 0):
+        raise ConfigError(f'latency must be a time >= 0 s, got {latency_s}')
+    if latency_s and mode != 'lockstep':
+        raise ConfigError('a fixed latency is for lockstep mode: realtime measures its own')
     episode = Episode(name, pointer.name, mode)
     pointer.reset(name)
     ctl = world.controller(controller)
@@ -185,7 +192,10 @@ def run_episode(world, pointer: Pointer, *, controller,
         spent = time.perf_counter() - t0
         episode.compute_s.append(spent)
         ready = spent if pointing.ready_s is None else min(pointing.ready_s, spent)
-        done, free = (start, start) if mode == 'lockstep' else (start + ready, start + spent)
+        if mode == 'lockstep':
+            done, free = start + latency_s, start
+        else:
+            done, free = start + ready, start + spent
         heat = pointing.heat if pointing.heat is not None else gaze_map(
             pointing.location, (view.rgb.shape[1], view.rgb.shape[0]))
         xy = None

@@ -242,6 +242,25 @@ def test_bad_mode_is_refused(tmp_path):
         episode(seq, CentrePointer(), mode='fast')
 
 
+def test_a_fixed_latency_delays_every_command_by_as_much_and_deterministically(tmp_path):
+    seq = data.load_sequence(make_walker(tmp_path, fps=20.0))
+    prompt = episode(seq, OraclePointer())
+    late = [episode(seq, OraclePointer(), latency_s=0.12) for _ in range(2)]
+    assert [r.pan for r in late[0].records] == [r.pan for r in late[1].records]
+    first_move = [next(r.t for r in run.records if r.pan != 0.0) for run in (prompt, late[0])]
+    assert first_move[0] < first_move[1] <= first_move[0] + 0.12 + 0.05   # + a scene frame
+    assert late[0].summary()['processed'] == prompt.summary()['processed']   # every frame
+    assert late[0].summary()['aae_deg'] > prompt.summary()['aae_deg']
+
+
+@pytest.mark.parametrize('latency,mode', [(-0.01, 'lockstep'), (math.nan, 'lockstep'),
+                                          (0.03, 'realtime')])
+def test_bad_latency_is_refused(tmp_path, latency, mode):
+    seq = data.load_sequence(make_walker(tmp_path, n=3))
+    with pytest.raises(ConfigError, match='latency'):
+        episode(seq, CentrePointer(), mode=mode, latency_s=latency)
+
+
 # -- the command ---------------------------------------------------------------------------
 
 def test_cli_table_csv_plots_videos_and_bad_sequences(tmp_path, capsys):
@@ -283,6 +302,8 @@ def test_cli_table_csv_plots_videos_and_bad_sequences(tmp_path, capsys):
     (['--screen', 'view_fraction=2'], 'view_fraction'),
     (['--control', 'gain=3'], 'unknown --control'),
     (['--max-frames', '0'], '--max-frames'),
+    (['--latency', '-5'], '--latency'),
+    (['--latency', '30', '--mode', 'realtime'], '--latency is for --mode lockstep'),
 ])
 def test_cli_refuses_bad_options(tmp_path, capsys, args, message):
     make_walker(tmp_path, n=3)

@@ -158,7 +158,8 @@ def _run_job(job: dict) -> dict:
             world = screen_world(frames, fps=seq.fps, screen=screen, controller=controller,
                                  camera_fps=job['camera_fps'] or None)
             episode = run_episode(world, pointer, controller=controller, mode=job['mode'],
-                                  name=seq.name, on_frame=video.add if video else None)
+                                  latency_s=job['latency_ms'] / 1e3, name=seq.name,
+                                  on_frame=video.add if video else None)
         except BaseException:
             if video:
                 video.abandon()
@@ -252,8 +253,8 @@ class OverlayVideo:
 # -- the whole benchmark ---------------------------------------------------------------------
 
 def evaluate(sequences: list[data.Sequence], methods: list[str], *, mode: str,
-             camera_fps: float, screen: dict, settings: dict, control: dict, seed: int,
-             jobs: int, aim_limits: str = 'arm',
+             latency_ms: float = 0.0, camera_fps: float, screen: dict, settings: dict,
+             control: dict, seed: int, jobs: int, aim_limits: str = 'arm',
              max_frames: int | None, video_dir: Path | None, quiet: bool) -> dict:
     """Run every method on every sequence (in `jobs` worker processes)."""
     threads = max(1, (os.cpu_count() or 1) // jobs)
@@ -262,7 +263,8 @@ def evaluate(sequences: list[data.Sequence], methods: list[str], *, mode: str,
         for method in methods:
             video = str(video_dir / seq.name / f'{method}.mp4') if video_dir else ''
             work.append({'path': str(seq.path), 'method': method, 'settings': settings,
-                         'seed': seed, 'mode': mode, 'camera_fps': camera_fps,
+                         'seed': seed, 'mode': mode, 'latency_ms': latency_ms,
+                         'camera_fps': camera_fps,
                          'screen': screen, 'control': control, 'aim_limits': aim_limits,
                          'max_frames': max_frames, 'video': video, 'threads': threads})
     # the slowest first (resnet50, then the other model methods), so the fast ones fill
@@ -398,6 +400,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--mode', choices=MODES, default='lockstep',
                    help='lockstep: every frame processed, deterministic (default); realtime: '
                         'frames the method is too slow for are dropped')
+    p.add_argument('--latency', type=float, default=0.0, metavar='MS',
+                   help='lockstep: each command reaches the arm this long after its frame '
+                        'was captured, a fixed compute time (default 0); deterministic, '
+                        'unlike realtime, so what a delay costs can be compared run to run')
     p.add_argument('--camera-fps', type=float, default=10.0, metavar='HZ',
                    help='frame rate of the virtual camera (default 10, the bundled bag\'s; '
                         '0: one picture per scene frame); the scene plays at its own rate')
@@ -445,6 +451,10 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError('--camera-fps must be >= 0')
         if args.jobs < 1:
             raise ConfigError('--jobs must be >= 1')
+        if not (args.latency >= 0 and math.isfinite(args.latency)):
+            raise ConfigError('--latency must be >= 0 ms')
+        if args.latency and args.mode != 'lockstep':
+            raise ConfigError('--latency is for --mode lockstep: realtime measures its own')
         methods = names(args.methods) or list(METHODS)
         for m in methods:
             if m not in METHODS:
@@ -468,10 +478,12 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if not args.quiet:
         rate = f'camera {args.camera_fps:g} Hz' if args.camera_fps else 'every scene frame'
-        print(f'{len(methods)} methods x {len(sequences)} sequences, {args.mode}, {rate}; '
+        mode = f'{args.mode} + {args.latency:g} ms' if args.latency else args.mode
+        print(f'{len(methods)} methods x {len(sequences)} sequences, {mode}, {rate}; '
               f'{geometry.describe()}', file=sys.stderr)
     started = time.monotonic()
-    result = evaluate(sequences, methods, mode=args.mode, camera_fps=args.camera_fps,
+    result = evaluate(sequences, methods, mode=args.mode, latency_ms=args.latency,
+                      camera_fps=args.camera_fps,
                       screen=screen, settings=settings,
                       control=control, seed=args.seed, jobs=args.jobs,
                       aim_limits=args.aim_limits,
@@ -481,7 +493,8 @@ def run(args: argparse.Namespace) -> int:
     for name, reason in result['skipped']:
         print(f'skipped {name}: {reason}', file=sys.stderr)
     result['settings'] = {
-        'data': str(root), 'mode': args.mode, 'camera_fps': args.camera_fps,
+        'data': str(root), 'mode': args.mode, 'latency_ms': args.latency,
+        'camera_fps': args.camera_fps,
         'screen': geometry.describe(),
         'screen_config': screen, 'set': settings, 'seed': args.seed,
         'control': control, 'aim_limits': args.aim_limits,
