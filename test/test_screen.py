@@ -242,7 +242,7 @@ def test_bad_mode_is_refused(tmp_path):
         episode(seq, CentrePointer(), mode='fast')
 
 
-def test_a_fixed_latency_delays_every_command_by_as_much_and_deterministically(tmp_path):
+def test_a_fixed_latency_delays_the_arm_deterministically_and_keeps_every_frame(tmp_path):
     seq = data.load_sequence(make_walker(tmp_path, fps=20.0))
     prompt = episode(seq, OraclePointer())
     late = [episode(seq, OraclePointer(), latency_s=0.12) for _ in range(2)]
