@@ -32,6 +32,7 @@ angle between the camera's ray to the location it gave and its ray to the actor'
 nearest that location, both at capture. It scores the perception alone: the AAE also pays
 for the arm's lag and the controller's rules.
 """
+import dataclasses
 from dataclasses import dataclass, field
 import math
 import time
@@ -60,6 +61,7 @@ class Pointing:
     peak: float | None = None
     ready_s: float | None = None       # s into `locate` the answer was ready (None: at its end)
     box: tuple | None = None           # x, y, w, h (px) of what is at the location, if known
+    learnt: bool | None = None         # a learning pointer: whether it took an optimiser step
 
 
 class Pointer(Protocol):
@@ -101,6 +103,7 @@ class Episode:
     records: list[FrameRecord] = field(default_factory=list)
     compute_s: list[float] = field(default_factory=list)
     commands: int = 0
+    learnt: int | None = None          # frames a learning pointer took an optimiser step on
 
     def scored(self) -> list[FrameRecord]:
         return [r for r in self.records if r.scored]
@@ -118,6 +121,8 @@ class Episode:
             'in_view': float(np.mean([r.in_view for r in rows])) if rows else math.nan,
             'pointing_deg': float(np.mean(pointing)) if pointing else math.nan,
             'compute_ms': float(np.mean(self.compute_s) * 1e3) if self.compute_s else 0.0,
+            'learnt': (self.learnt / len(self.compute_s) if self.learnt is not None
+                       and self.compute_s else math.nan),   # share of processed frames
         }
 
 
@@ -188,9 +193,15 @@ def run_episode(world, pointer: Pointer, *, controller,
     def process(view: View, start: float) -> float:
         """Process a frame from ``start``; returns when the pointer is free again."""
         t0 = time.perf_counter()
+        if mode == 'realtime':     # late once simulated time passes the next capture
+            next_capture = view.t + world.capture_period
+            view = dataclasses.replace(
+                view, late=lambda: start + time.perf_counter() - t0 >= next_capture)
         pointing = pointer.locate(view)
         spent = time.perf_counter() - t0
         episode.compute_s.append(spent)
+        if pointing.learnt is not None:
+            episode.learnt = (episode.learnt or 0) + pointing.learnt
         ready = spent if pointing.ready_s is None else min(pointing.ready_s, spent)
         if mode == 'lockstep':
             done, free = start + latency_s, start

@@ -15,7 +15,7 @@ on the virtual screen (`screen.VirtualScreen`), seen by a camera the simulated B
 """
 from dataclasses import dataclass
 import math
-from typing import Iterable, Iterator, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -38,6 +38,9 @@ class View:
     primary_px: np.ndarray | None      # (2,) camera pixel of the primary actor, if annotated
     centre_px: np.ndarray              # (2,) camera pixel of the screen centre
     truth_box: tuple[int, int, int, int] | None = None   # x, y, w, h of the target, if known
+    # realtime: whether the camera has captured its next frame by now (the model's
+    # skip_late_updates); None: never late
+    late: Callable[[], bool] | None = None
 
 
 def frame_time(index: int, fps: float) -> float:
@@ -78,6 +81,11 @@ class ScreenWorld:
         self.scene: np.ndarray | None = None
         self.truth: FrameTruth | None = None
         self.pan = self.tilt = 0.0
+
+    @property
+    def capture_period(self) -> float:
+        """Time from one camera capture to the next, s."""
+        return max(self.period, 1.0 / self.fps)
 
     def times(self) -> Iterator[float]:
         """Shows each scene frame in turn; yields the time it is shown at."""

@@ -289,6 +289,38 @@ def test_no_learning_leaves_weights_alone():
     assert res.surprise_map.sum() == pytest.approx(1.0, abs=1e-5)
 
 
+@pytest.mark.parametrize('limit', [0, 1, 2])
+def test_late_frames_skip_their_update_but_never_more_than_the_limit_in_a_row(limit):
+    model = make(skip_late_updates=limit)
+    asked = []
+
+    def always_late():
+        asked.append(model.frame_index)
+        return True
+    learnt = []
+    for frame in clip(9):
+        before = weights(model)
+        res = model.step(frame, late=always_late)
+        learnt.append(res.updated)
+        assert same(before, weights(model)) != res.updated     # a skip changes nothing
+        assert res.surprise_map.sum() == pytest.approx(1.0, abs=1e-5)
+    # the first frame has nothing to learn from; then `limit` skips, one update, and again
+    assert learnt == [False] + (([False] * limit + [True]) * 8)[:8]
+    assert len(asked) == (0 if limit == 0 else 8 - learnt.count(True))
+
+
+def test_a_frame_in_time_learns_and_the_late_skips_go_on_from_the_same_state():
+    lag, strict = make(), make(skip_late_updates=0)
+    for i, frame in enumerate(clip(6)):
+        a = lag.step(frame, late=lambda: i == 3)
+        b = strict.step(frame)
+        assert b.updated == (i > 0)
+        assert a.updated == (i > 0 and i != 3)
+        if i < 3:                      # the same until the skipped update
+            np.testing.assert_array_equal(a.surprise_map, b.surprise_map)
+    assert lag.updates == strict.updates - 1
+
+
 def test_predlearn_has_no_attention_loss():
     model = make(mode='predlearn')
     for frame in clip(4):

@@ -145,12 +145,12 @@ class FakeModel:
         self.encoder = encoder or object()
         FakeModel.built += 1
 
-    def step(self, frame: np.ndarray, *, on_map=None):
+    def step(self, frame: np.ndarray, *, on_map=None, late=None):
         grey = frame.mean(axis=2).astype(np.float32)
         heat = cv2.resize(grey, (14, 14), interpolation=cv2.INTER_AREA)
         heat = heat / heat.sum()
         result = types.SimpleNamespace(surprise_map=heat, peak=float(heat.max()),
-                                       location_px=(0.0, 0.0))
+                                       location_px=(0.0, 0.0), updated=True)
         if on_map is not None:
             on_map(result)
         return result

@@ -114,3 +114,31 @@ def test_an_oversized_frame_is_skipped_and_reported(rig):
         return any(s.level == bytes([WARN]) and 'skipping' in s.message
                    for d in heard['diagnostics'] for s in d.status)
     assert spin_until(executor, warned, 5.0)
+
+
+@pytest.mark.parametrize('stamped', ['now', 'recorded'])
+def test_frames_mapped_after_the_next_capture_are_not_all_learnt_from(rig, stamped):
+    """A 1 kHz camera (its camera_info stamps): each map is ready after the next capture,
+    so at most every second frame gets an optimiser step (skip_late_updates 1). Stamps from
+    a recording are no capture times: every frame is learnt from."""
+    from sensor_msgs.msg import CameraInfo, Image
+    executor, node, probe, heard = rig()
+    info_pub = probe.create_publisher(CameraInfo, 'camera/camera_info', 10)
+    image_pub = probe.create_publisher(Image, 'camera/image_raw', 10)
+    start = probe.get_clock().now().nanoseconds
+    for k in range(3):
+        info = CameraInfo()
+        info.header.stamp.sec, info.header.stamp.nanosec = divmod(start + k * 10**6, 10**9)
+        info_pub.publish(info)
+    assert spin_until(executor, lambda: node.stats.camera_period is not None, 30.0)
+    assert node.stats.camera_period == pytest.approx(1e-3, rel=1e-3)
+    for n in range(1, 9):
+        msg = image()
+        if stamped == 'now':
+            msg.header.stamp = probe.get_clock().now().to_msg()
+        assert feed(executor, image_pub, msg, lambda: node.stats.maps >= n)
+    maps, learnt = node.stats.maps, node.stats.learnt
+    if stamped == 'now':       # the first frame has nothing to learn from
+        assert (maps - 1) // 2 <= learnt < maps - 1
+    else:
+        assert learnt == maps - 1

@@ -219,6 +219,32 @@ def test_realtime_commands_leave_when_the_answer_is_ready_not_when_the_pointer_i
     assert early['aae_deg'] < late['aae_deg']              # but it steers sooner
 
 
+class AskingOracle(OraclePointer):
+    """The oracle, taking ``delay`` s and then asking whether its frame is late (as the
+    model asks before its optimiser step)."""
+
+    def __init__(self, delay: float):
+        super().__init__()
+        self.delay, self.answers = delay, []
+
+    def locate(self, view) -> Pointing:
+        time.sleep(self.delay)
+        self.answers.append(None if view.late is None else view.late())
+        return super().locate(view)
+
+
+@pytest.mark.parametrize('delay, late', [(0.0, False), (0.15, True)])
+def test_realtime_tells_a_pointer_its_frame_is_late_once_the_next_is_captured(
+        tmp_path, delay, late):
+    seq = data.load_sequence(make_walker(tmp_path, n=8))
+    real = AskingOracle(delay)
+    episode(seq, real, mode='realtime')
+    assert real.answers and set(real.answers) == {late}    # a frame every 100 ms
+    lock = AskingOracle(delay)
+    episode(seq, lock)
+    assert set(lock.answers) == {None}                      # lockstep: never late
+
+
 def test_realtime_scores_the_pointing_of_frames_taken_from_the_queue_too(tmp_path):
     seq = data.load_sequence(make_walker(tmp_path, fps=20.0))
     run = episode(seq, SlowOracle(0.12), mode='realtime')

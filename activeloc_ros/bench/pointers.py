@@ -49,15 +49,18 @@ class ModelPointer:
 
     def locate(self, view: View) -> Pointing:
         """The model's step; its location is ready when its map is, before the optimiser
-        step, as the perception node publishes it."""
+        step, as the perception node publishes it, and a late frame's step is skipped as
+        the node skips it."""
         t0 = time.perf_counter()
         ready: list[float] = []
         result = self.model.step(view.rgb,
-                                 on_map=lambda _: ready.append(time.perf_counter() - t0))
+                                 on_map=lambda _: ready.append(time.perf_counter() - t0),
+                                 late=view.late)
         h, w = view.rgb.shape[:2]
         return Pointing(result.location_px, result.surprise_map, result.peak,
                         ready_s=ready[0] if ready else None,
-                        box=metrics.blob_box(result.surprise_map, (w, h)))
+                        box=metrics.blob_box(result.surprise_map, (w, h)),
+                        learnt=result.updated)
 
 
 class TrackerMethod:

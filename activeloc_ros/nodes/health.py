@@ -3,7 +3,7 @@
 The perception node feeds it and turns each `Report` into a diagnostic_msgs status on
 `/diagnostics` (maps/s, latency, dropped and skipped frames), as camera drivers do.
 """
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -23,23 +23,37 @@ class PipelineStats:
 
     *Announced* frames are those the camera says it published (one camera_info each);
     announced frames never received were dropped on the way (a depth-1 queue keeps only
-    the newest frame while the model is busy). *Skipped* frames arrived but could not be
-    used (bad encoding, too large), by reason.
+    the newest frame while the model is busy); their stamps give the camera's frame period.
+    *Skipped* frames arrived but could not be used (bad encoding, too large), by reason.
+    *Learnt* frames are mapped frames that got an optimiser step.
     """
 
     def __init__(self, now: float):
         self.announced = 0
         self.received = 0
         self.maps = 0
+        self.learnt = 0
         self.skipped: Counter[str] = Counter()
         self._since = now
-        self._period = {'received': 0, 'maps': 0, 'skipped': 0}
+        self._period = {'received': 0, 'maps': 0, 'skipped': 0, 'learnt': 0}
+        self._gaps: deque[float] = deque(maxlen=15)     # between announced frames' stamps, s
+        self._last_stamp: float | None = None
         self._latency_s: list[float] = []
         self._compute_s: list[float] = []
         self._last_skip = ''
 
-    def frame_announced(self) -> None:
+    def frame_announced(self, stamp_s: float | None = None) -> None:
         self.announced += 1
+        if stamp_s is not None:
+            if self._last_stamp is not None and stamp_s > self._last_stamp:
+                self._gaps.append(stamp_s - self._last_stamp)
+            self._last_stamp = stamp_s
+
+    @property
+    def camera_period(self) -> float | None:
+        """The camera's frame period, s: the median gap between the stamps of the last
+        announced frames; None before two."""
+        return float(np.median(self._gaps)) if self._gaps else None
 
     def frame_received(self) -> None:
         self.received += 1
@@ -57,6 +71,11 @@ class PipelineStats:
         self._latency_s.append(latency_s)
         self._compute_s.append(compute_s)
 
+    def frame_learnt(self) -> None:
+        """The model took an optimiser step on a mapped frame."""
+        self.learnt += 1
+        self._period['learnt'] += 1
+
     @property
     def dropped(self) -> int | None:
         """Frames announced but never received; None when nothing was announced."""
@@ -64,7 +83,8 @@ class PipelineStats:
 
     def summary(self) -> str:
         """One line for the log at the end of a run."""
-        text = f'{self.maps} maps from {self.received} frames received'
+        text = (f'{self.maps} maps from {self.received} frames received, '
+                f'{self.learnt} learnt from')
         if self.dropped is not None:
             text += f', {self.dropped} of {self.announced} announced frames dropped'
         if self.skipped:
@@ -82,6 +102,8 @@ class PipelineStats:
             'latency p50 ms (stamp to map)': _ms(np.median(latency) if latency else None),
             'latency max ms (stamp to map)': _ms(max(latency) if latency else None),
             'model step mean ms': _ms(np.mean(compute) if compute else None),
+            'maps learnt from (share)': (f'{period["learnt"] / period["maps"]:.2f}'
+                                         if period['maps'] else 'n/a'),
             'maps': str(self.maps),
             'frames received': str(self.received),
             'frames dropped': 'unknown (no camera_info)' if self.dropped is None

@@ -12,7 +12,9 @@ pixel x, y of the action in the camera image, z = the map's peak; the frame's he
 before it `action_region` (geometry_msgs/PolygonStamped: the top-left and bottom-right
 corners, px, of the map's blob round its peak, `metrics.blob_box`; a mobile base reads how
 far the action is from it) and its health on `/diagnostics` (maps/s, latency, dropped and
-skipped frames).
+skipped frames, the share of maps learnt from). A camera faster than the model makes some
+frames late: their map is ready only after the next frame's capture (camera_info stamps
+give the camera's period), and the model skips their optimiser step (`skip_late_updates`).
 
     ros2 run activeloc_ros perception_node --ros-args --params-file params/perception.yaml
 """
@@ -21,6 +23,7 @@ import math
 import os
 import threading
 import time
+from typing import Callable
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PointStamped, PolygonStamped
@@ -37,7 +40,7 @@ from activeloc_ros.errors import FrameError
 from activeloc_ros.images import (decode_compressed, float_image_fields, image_to_rgb, overlay,
                                   rgb_to_image_fields)
 from activeloc_ros.nodes.health import PipelineStats
-from activeloc_ros.nodes.messages import region_message
+from activeloc_ros.nodes.messages import region_message, stamp_s
 from activeloc_ros.nodes.qos import offered_reliability
 from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
 from activeloc_ros.perception.config import PerceptionConfig
@@ -47,6 +50,7 @@ from activeloc_ros.perception.pipeline import Pipeline
 RELIABILITY = {'best_effort': ReliabilityPolicy.BEST_EFFORT,
                'reliable': ReliabilityPolicy.RELIABLE}
 QOS_CHECK_PERIOD_S = 1.0     # image_reliability auto: how often the publishers are looked at
+MAX_CAPTURE_AGE_S = 1.0      # a frame stamped longer ago: its stamp is no capture time
 
 # Parameters without read_only take effect at the next frame.
 NODE_PARAMS = [
@@ -131,7 +135,8 @@ class PerceptionNode(Node):
                               clock=Clock(clock_type=ClockType.STEADY_TIME))
         # one camera_info per published frame: counts the frames the depth-1 queue dropped
         self.info_sub = self.create_subscription(
-            CameraInfo, 'camera/camera_info', lambda msg: self.stats.frame_announced(),
+            CameraInfo, 'camera/camera_info',
+            lambda msg: self.stats.frame_announced(stamp_s(msg.header.stamp)),
             QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT))
         self.stats = PipelineStats(time.monotonic())
         self.diagnostics_timer = self.create_timer(self.params['diagnostics_period'],
@@ -199,9 +204,26 @@ class PerceptionNode(Node):
         started = time.monotonic()
         if self.pipeline is None:  # the map goes out before the optimiser step
             tag = (header, rgb, started)
-            self.model.step(rgb, on_map=lambda r: self.publish(r, tag))
+            result = self.model.step(rgb, on_map=lambda r: self.publish(r, tag),
+                                     late=self._late(header.stamp))
+            if result.updated:
+                self.stats.frame_learnt()
         else:                      # published from the learning thread
             self.pipeline.submit(rgb, tag=(header, rgb, started))
+
+    def _late(self, stamp) -> Callable[[], bool] | None:
+        """For the model's `skip_late_updates`: whether the node's clock has passed the
+        capture of the camera's next frame (this frame's stamp plus the camera's period).
+        None, never late, while the period is unknown or the stamp is no capture time (a
+        bag replayed with its recorded stamps). In lockstep the clock stands still while
+        the model runs: never late."""
+        period = self.stats.camera_period
+        captured = stamp_s(stamp)
+        now = self.get_clock().now().nanoseconds * 1e-9
+        if period is None or not 0.0 <= now - captured < MAX_CAPTURE_AGE_S:
+            return None
+        next_capture = captured + period
+        return lambda: self.get_clock().now().nanoseconds * 1e-9 >= next_capture
 
     def publish(self, result: PerceptionResult, tag: tuple) -> None:
         header, rgb, started = tag

@@ -155,6 +155,12 @@ class PerceptionConfig:
         'mean', 'L_global over cells and channels: mean or sum', one_of('mean', 'sum'))
     # online learning
     learn: bool = _param(True, 'one optimiser step per frame; False = predict only')
+    skip_late_updates: int = _param(
+        1, 'a frame whose map is ready only after the camera has captured its next one (a '
+        'camera faster than the model, in real time) gets no optimiser step, so the model '
+        'turns to the newer frame sooner; at most this many frames in a row, so at least one '
+        'frame in this + 1 is learnt from. 0 = the paper\'s strict one step per frame. A '
+        'camera the model keeps up with, and lockstep, are never late', at_least(0))
     update_encoder: bool = _param(
         False, 'also train the encoder online (paper: True; it costs 2 encoder backward '
         'passes per frame)')

@@ -159,6 +159,7 @@ class SurpriseModel:
         self.nan_events = 0
         self.frame_index = 0
         self.updates = 0
+        self.late_skips = 0        # optimiser steps skipped in a row (skip_late_updates)
         self.reset()
         self._snapshot = None
         self._take_snapshot()
@@ -245,11 +246,12 @@ class SurpriseModel:
             return None, self.features.of(x, learning=True)[0]
 
     def step(self, frame: np.ndarray, *,
-             on_map: Callable[[PerceptionResult], None] | None = None) -> PerceptionResult:
+             on_map: Callable[[PerceptionResult], None] | None = None,
+             late: Callable[[], bool] | None = None) -> PerceptionResult:
         """Encode a frame, score the prediction made for it, update online, predict on
         (`observe`, then `learn`, which hands the map to ``on_map`` before its optimiser
-        step)."""
-        return self.learn(self.observe(frame), on_map=on_map)
+        step, and asks ``late`` whether to skip that step)."""
+        return self.learn(self.observe(frame), on_map=on_map, late=late)
 
     def observe(self, frame: np.ndarray) -> Observation:
         """The first half of `step`: the frame's encoder input, its features and the
@@ -281,13 +283,17 @@ class SurpriseModel:
         return obs
 
     def learn(self, obs: Observation, *,
-              on_map: Callable[[PerceptionResult], None] | None = None) -> PerceptionResult:
+              on_map: Callable[[PerceptionResult], None] | None = None,
+              late: Callable[[], bool] | None = None) -> PerceptionResult:
         """The second half of `step`: score the prediction made for the observed frame,
         update online, and remember what the next prediction needs.
 
         :param on_map: called once with the frame's result as soon as its map exists:
             before the optimiser step (which the map does not need), so a caller can publish
             it early. The result returned at the end also carries the step's outcome.
+        :param late: asked once the map is out: whether the camera has captured its next
+            frame by now. If so, the optimiser step is skipped (`skip_late_updates` allowing):
+            the prediction, the state and the losses are kept, the weights stay as they are.
         """
         def handed(result: PerceptionResult) -> PerceptionResult:
             if on_map is not None:
@@ -342,6 +348,9 @@ class SurpriseModel:
             losses = {k: float(v.detach()) for k, v in
                       (('global', l_global), ('attn', l_attn), ('total', total))}
         result = handed(self._result(e, losses=losses, **done))
+        if train and self._skip_late(late):
+            self._remember(f_cur, (new_state[0].detach(), new_state[1].detach()))
+            return dataclasses.replace(result, updated=False)
         lr = self._update(total) if train else 0.0
         timings['update'] = time.perf_counter() - t3
         timings['total'] = time.perf_counter() - obs.t0
@@ -403,6 +412,15 @@ class SurpriseModel:
         moved = egomotion.warp_cells(torch.cat([f_prev, ones], 1)[None], warp, self.size,
                                      self.grid)[0]
         return moved[:, :-1] + (1.0 - moved[:, -1:]) * f_cur
+
+    def _skip_late(self, late: Callable[[], bool] | None) -> bool:
+        """Whether to skip this frame's optimiser step: it is late, and fewer than
+        `skip_late_updates` frames in a row were skipped before it."""
+        if late is None or self.late_skips >= self.cfg.skip_late_updates or not late():
+            self.late_skips = 0
+            return False
+        self.late_skips += 1
+        return True
 
     def _update(self, total: torch.Tensor) -> float | None:
         """One optimiser step; the learning rate used, or None if anything was not finite."""

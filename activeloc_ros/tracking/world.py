@@ -200,6 +200,11 @@ class TrackingWorld:
         ctl.set_intrinsics(self.intrinsics)
         return ctl
 
+    @property
+    def capture_period(self) -> float:
+        """Time from one camera capture to the next, s: one control step."""
+        return self.config.step
+
     def times(self):
         """Each control step's time, until the episode ends: ``max_steps`` steps, or the
         target lost for ``lost_steps`` steps in a row."""
