@@ -137,6 +137,7 @@ def test_frames_mapped_after_the_next_capture_are_not_all_learnt_from(rig, stamp
         if stamped == 'now':
             msg.header.stamp = probe.get_clock().now().to_msg()
         assert feed(executor, image_pub, msg, lambda: node.stats.maps >= n)
+    node.count_updates()
     maps, learnt = node.stats.maps, node.stats.learnt
     if stamped == 'now':       # the first frame has nothing to learn from
         assert (maps - 1) // 2 <= learnt < maps - 1

@@ -35,7 +35,8 @@ class PipelineStats:
         self.learnt = 0
         self.skipped: Counter[str] = Counter()
         self._since = now
-        self._period = {'received': 0, 'maps': 0, 'skipped': 0, 'learnt': 0}
+        self._period = {'received': 0, 'maps': 0, 'skipped': 0}
+        self._learnt_before = 0        # `learnt` at the start of the period
         self._gaps: deque[float] = deque(maxlen=15)     # between announced frames' stamps, s
         self._last_stamp: float | None = None
         self._latency_s: list[float] = []
@@ -71,10 +72,9 @@ class PipelineStats:
         self._latency_s.append(latency_s)
         self._compute_s.append(compute_s)
 
-    def frame_learnt(self) -> None:
-        """The model took an optimiser step on a mapped frame."""
-        self.learnt += 1
-        self._period['learnt'] += 1
+    def frames_learnt(self, total: int) -> None:
+        """The model has taken ``total`` optimiser steps since the start."""
+        self.learnt = total
 
     @property
     def dropped(self) -> int | None:
@@ -96,13 +96,14 @@ class PipelineStats:
         """Summarise the period since the last report and start a new one."""
         seconds = max(now - self._since, 1e-9)
         period, latency, compute = self._period, self._latency_s, self._compute_s
+        learnt = self.learnt - self._learnt_before
         values = {
             'maps per second': f'{period["maps"] / seconds:.2f}',
             'frames received per second': f'{period["received"] / seconds:.2f}',
             'latency p50 ms (stamp to map)': _ms(np.median(latency) if latency else None),
             'latency max ms (stamp to map)': _ms(max(latency) if latency else None),
             'model step mean ms': _ms(np.mean(compute) if compute else None),
-            'maps learnt from (share)': (f'{period["learnt"] / period["maps"]:.2f}'
+            'maps learnt from (share)': (f'{learnt / period["maps"]:.2f}'
                                          if period['maps'] else 'n/a'),
             'maps': str(self.maps),
             'frames received': str(self.received),
@@ -118,6 +119,7 @@ class PipelineStats:
             level, message = OK, f'{period["maps"] / seconds:.1f} maps/s'
         self._since = now
         self._period = dict.fromkeys(period, 0)
+        self._learnt_before = self.learnt
         self._latency_s, self._compute_s = [], []
         return Report(level, message, values)
 

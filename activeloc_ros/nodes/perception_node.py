@@ -119,6 +119,7 @@ class PerceptionNode(Node):
         else:
             self.model = SurpriseModel(PerceptionConfig.from_dict(config))
         self.stats_lock = threading.Lock()     # the learning thread publishes the maps
+        self.updates_before = self.model.updates    # a checkpoint's count goes on
         self.pipeline = (Pipeline(self.model, self.publish)
                          if pipelined and not self.model.train_encoder else None)
         overlay_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
@@ -204,10 +205,8 @@ class PerceptionNode(Node):
         started = time.monotonic()
         if self.pipeline is None:  # the map goes out before the optimiser step
             tag = (header, rgb, started)
-            result = self.model.step(rgb, on_map=lambda r: self.publish(r, tag),
-                                     late=self._late(header.stamp))
-            if result.updated:
-                self.stats.frame_learnt()
+            self.model.step(rgb, on_map=lambda r: self.publish(r, tag),
+                            late=self._late(header.stamp))
         else:                      # published from the learning thread
             self.pipeline.submit(rgb, tag=(header, rgb, started))
 
@@ -253,8 +252,13 @@ class PerceptionNode(Node):
         if self.stats.maps == 1:
             self.get_logger().info('first surprise map published')
 
+    def count_updates(self) -> None:
+        """The optimiser steps the model took since the node started, into the stats."""
+        self.stats.frames_learnt(self.model.updates - self.updates_before)
+
     def publish_diagnostics(self) -> None:
         with self.stats_lock:
+            self.count_updates()
             report = self.stats.report(time.monotonic())
         status = DiagnosticStatus(
             level=bytes([report.level]), name=f'{self.get_name()}: surprise maps',
@@ -275,6 +279,7 @@ class PerceptionNode(Node):
 def stop(node: PerceptionNode) -> None:
     if node.pipeline is not None:                 # the frame being learnt is published
         node.pipeline.close(timeout=10.0)
+    node.count_updates()
     node.get_logger().info(f'stopped: {node.stats.summary()}')
 
 
