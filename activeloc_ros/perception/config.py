@@ -156,11 +156,13 @@ class PerceptionConfig:
     # online learning
     learn: bool = _param(True, 'one optimiser step per frame; False = predict only')
     skip_late_updates: int = _param(
-        1, 'a frame whose map is ready only after the camera has captured its next one (a '
+        0, 'a frame whose map is ready only after the camera has captured its next one (a '
         'camera faster than the model, in real time) gets no optimiser step, so the model '
         'turns to the newer frame sooner; at most this many frames in a row, so at least one '
-        'frame in this + 1 is learnt from. 0 = the paper\'s strict one step per frame. A '
-        'camera the model keeps up with, and lockstep, are never late', at_least(0))
+        'frame in this + 1 is learnt from. 0 = the paper\'s strict one step per frame '
+        '(default: with a 30 frames/s camera 1 makes more maps but follows worse, README, '
+        'Weights). A camera the model keeps up with, and lockstep, are never late',
+        at_least(0))
     update_encoder: bool = _param(
         False, 'also train the encoder online (paper: True; it costs 2 encoder backward '
         'passes per frame)')
