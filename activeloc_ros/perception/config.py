@@ -161,8 +161,8 @@ class PerceptionConfig:
         'turns to the newer frame sooner; at most this many frames in a row, so at least one '
         'frame in this + 1 is learnt from. 0 = the paper\'s strict one step per frame '
         '(default: with a 30 frames/s camera 1 makes more maps but follows worse, README, '
-        'Weights). A camera the model keeps up with, and lockstep, are never late',
-        at_least(0))
+        'Weights). A camera the model keeps up with, and lockstep, are never late; the '
+        'perception node\'s pipeline: true learns from every frame', at_least(0))
     update_encoder: bool = _param(
         False, 'also train the encoder online (paper: True; it costs 2 encoder backward '
         'passes per frame)')
