@@ -5,6 +5,7 @@ tiny stand-in encoder (64 px, 8 x 8 cells, features of order 1, so learning is v
 whatever scale random ImageNet trunks give) keep the file fast. Nothing here measures time.
 """
 import dataclasses
+import math
 
 import cv2
 import numpy as np
@@ -351,6 +352,33 @@ def test_motion_weights(kind, at_rest):
         assert float(w[2]) > float(w[0]) or kind == 'none'
 
 
+@pytest.mark.parametrize('power', [1.0, 0.5])
+def test_the_motion_scale_grows_with_the_time_between_frames(power):
+    assert P.gap_factor(0.1, 0.1, power) == 1.0
+    assert P.gap_factor(0.3 - 0.2, 0.1, power) == 1.0    # stamp jitter below a millisecond
+    assert P.gap_factor(1 / 30, 0.1, power) == pytest.approx(0.33 ** power)
+    assert P.gap_factor(0.2, 0.1, power) == pytest.approx(2.0 ** power)
+    assert P.gap_factor(1e-3, 0.1, power) == 0.25 and P.gap_factor(60.0, 0.1, power) == 4.0
+    for gap in (None, 0.0, -0.1, math.nan):
+        assert P.gap_factor(gap, 0.1, power) == 1.0
+    assert P.gap_factor(1 / 30, 0.0, power) == 1.0        # motion_period 0: the paper's
+    assert P.gap_factor(1 / 30, 0.1, 0.0) == 1.0
+
+
+def test_frames_a_motion_period_apart_give_the_maps_of_frames_without_times():
+    frames = clip(5)
+    untimed, at_period, faster, fixed = make(), make(), make(), make(motion_period=0.0)
+    for i, frame in enumerate(frames):
+        a = untimed.step(frame)
+        b = at_period.step(frame, t=100.0 + 0.1 * i)
+        c = faster.step(frame, t=100.0 + i / 30)
+        d = fixed.step(frame, t=100.0 + i / 30)
+        np.testing.assert_array_equal(a.surprise_map, b.surprise_map)
+        np.testing.assert_array_equal(a.surprise_map, d.surprise_map)
+    # three times the frame rate: the square's smaller change weighs more than it would
+    assert not np.allclose(a.surprise_map, c.surprise_map)
+
+
 # -- determinism and checkpoints -------------------------------------------------------------
 def test_same_seed_same_maps_other_seed_other_maps():
     frames = clip(5)
@@ -370,27 +398,30 @@ def test_same_seed_same_maps_other_seed_other_maps():
 def test_checkpoint_resumes_learning_exactly(tmp_path, kw):
     frames = clip(9)
     model = make(real=True, adaptive_window=2, **kw)
-    for f in frames[:5]:
-        model.step(f)
+    times = [i / 30 for i in range(len(frames))]    # the motion scale follows their gaps
+    for f, t in zip(frames[:5], times):
+        model.step(f, t=t)
     path = str(tmp_path / 'perception.pt')
     model.save(path)
-    expected = [model.step(f) for f in frames[5:]]
+    expected = [model.step(f, t=t) for f, t in zip(frames[5:], times[5:])]
     loaded = SurpriseModel.load(path)
     assert loaded.cfg == model.cfg
-    got = [loaded.step(f) for f in frames[5:]]
+    got = [loaded.step(f, t=t) for f, t in zip(frames[5:], times[5:])]
     for a, b in zip(expected, got):
         np.testing.assert_array_equal(a.surprise_map, b.surprise_map)
         assert a.losses == b.losses and a.lr == b.lr and a.frame_index == b.frame_index
     assert same(weights(model), weights(loaded))
 
 
-def test_a_checkpoint_from_before_encoder_pad_loads_without_the_border(tmp_path):
+def test_a_checkpoint_from_before_encoder_pad_and_motion_period_loads_as_it_learned(tmp_path):
     path = tmp_path / 'old.pt'
     make(real=True).save(str(path))
     ckpt = torch.load(path, weights_only=True)
-    del ckpt['config']['encoder_pad']
+    del ckpt['config']['encoder_pad'], ckpt['config']['motion_period']
+    del ckpt['running']['t_prev']
     torch.save(ckpt, path)
-    assert SurpriseModel.load(str(path)).cfg.encoder_pad == 0
+    cfg = SurpriseModel.load(str(path)).cfg
+    assert cfg.encoder_pad == 0 and cfg.motion_period == 0.0   # no border, one scale
 
 
 # -- non-finite values -----------------------------------------------------------------------

@@ -145,7 +145,7 @@ class FakeModel:
         self.encoder = encoder or object()
         FakeModel.built += 1
 
-    def step(self, frame: np.ndarray, *, on_map=None, late=None):
+    def step(self, frame: np.ndarray, *, t=None, on_map=None, late=None):
         grey = frame.mean(axis=2).astype(np.float32)
         heat = cv2.resize(grey, (14, 14), interpolation=cv2.INTER_AREA)
         heat = heat / heat.sum()

@@ -91,6 +91,19 @@ def test_the_map_image_carries_the_frames_header(rig, pipeline):
         assert not node.pipeline._thread.is_alive()
 
 
+@pytest.mark.parametrize('pipeline', [False, True])
+def test_the_model_is_told_each_frames_capture_time(rig, pipeline):
+    """From the header's stamp: the motion weighting's scale follows the time between
+    frames (`motion_period`)."""
+    from sensor_msgs.msg import Image
+    executor, node, probe, heard = rig(f'pipeline:={str(pipeline).lower()}')
+    publisher = probe.create_publisher(Image, 'camera/image_raw', 10)
+    msg = image('cam', 7)
+    msg.header.stamp.nanosec = 250_000_000
+    assert feed(executor, publisher, msg, lambda: len(heard['maps']) >= 1)
+    assert node.model.t_prev == pytest.approx(7.25)
+
+
 def test_compressed_frames_are_decoded(rig):
     from sensor_msgs.msg import CompressedImage
     executor, node, probe, heard = rig('image_transport:=compressed')

@@ -35,11 +35,11 @@ def test_the_pipeline_gives_the_maps_step_gives_in_order(settings):
     frames[5] = frames[5].astype(np.float32)
     frames[5][0, 0, 0] = np.nan                   # a bad frame restarts the sequence
     reference = make(**settings)
-    expected = [reference.step(f) for f in frames]
+    expected = [reference.step(f, t=i / 30) for i, f in enumerate(frames)]  # 30 frames/s
     got = []
     pipeline = Pipeline(make(**settings), lambda result, tag: got.append((tag, result)))
     for i, frame in enumerate(frames):
-        pipeline.submit(frame, tag=i)
+        pipeline.submit(frame, tag=i, t=i / 30)
     assert pipeline.drain(timeout=60)
     pipeline.close()
     assert [tag for tag, _ in got] == list(range(len(frames)))

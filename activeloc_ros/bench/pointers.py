@@ -53,7 +53,7 @@ class ModelPointer:
         the node skips it."""
         t0 = time.perf_counter()
         ready: list[float] = []
-        result = self.model.step(view.rgb,
+        result = self.model.step(view.rgb, t=view.t,
                                  on_map=lambda _: ready.append(time.perf_counter() - t0),
                                  late=view.late)
         h, w = view.rgb.shape[:2]

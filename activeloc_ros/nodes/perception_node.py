@@ -205,10 +205,11 @@ class PerceptionNode(Node):
         started = time.monotonic()
         if self.pipeline is None:  # the map goes out before the optimiser step
             tag = (header, rgb, started)
-            self.model.step(rgb, on_map=lambda r: self.publish(r, tag),
+            self.model.step(rgb, t=stamp_s(header.stamp),
+                            on_map=lambda r: self.publish(r, tag),
                             late=self._late(header.stamp))
         else:                      # published from the learning thread
-            self.pipeline.submit(rgb, tag=(header, rgb, started))
+            self.pipeline.submit(rgb, tag=(header, rgb, started), t=stamp_s(header.stamp))
 
     def _late(self, stamp) -> Callable[[], bool] | None:
         """For the model's `skip_late_updates`: whether the node's clock has passed the

@@ -96,7 +96,18 @@ class PerceptionConfig:
         'below 0.5 where a feature drops); raw = d^2 (lab code, Table 3 "w/o normalized '
         'motion"); none = unweighted', one_of(*MOTIONS))
     motion_scale: float = _param(
-        1.0, 'motion scale s of the sigmoid weightings (paper: 1)', above(0.0))
+        1.0, 'motion scale s of the sigmoid weightings (paper: 1), for frames motion_period '
+        'apart', above(0.0))
+    motion_period: float = _param(
+        0.1, 'seconds between compared frames (their capture stamps) at which motion_scale '
+        'and image_motion_scale hold; frames closer together or farther apart scale both '
+        'by (gap / motion_period) ** motion_gap_power, within 1/4 to 4 times, because a '
+        'picture changes less in less time; 0 = fixed scales at any frame rate (paper)',
+        at_least(0.0))
+    motion_gap_power: float = _param(
+        0.5, 'how the motion scales grow with the time between frames: 1 = in proportion '
+        '(a steady motion), 0.5 = as its square root (the spread of a random walk)',
+        at_least(0.0))
     motion_source: str = _param(
         'features', 'what the motion d is measured on: features = f_t - f_{t-1} of each '
         'cell, broadcast over nothing (paper Eq. 2); image = the per-cell mean change of '

@@ -25,7 +25,8 @@ Which computation happens when (one frame per `step`, t the new frame):
 
 Losses (`loss_reduction='mean'`, the default; N cells, C channels; f are the encoder's
 features, each frame divided by its RMS under the default `feature_norm='frame_rms'`):
-    w        = motion weight of (f_t - f_{t-1}), detached (a weight, not a target)
+    w        = motion weight of (f_t - f_{t-1}), detached (a weight, not a target), its
+               scale growing with the time between the two frames (`motion_period`)
     E        = w * (f_t - fhat_t)^2                                  # (N, C)
     L_global = mean over N*C of E            ('sum': sum over N*C)
     e        = mean over C of E; map = softmax over the N cells of e / map_temperature
@@ -81,7 +82,8 @@ from activeloc_ros.perception import egomotion, motion
 from activeloc_ros.perception.config import PerceptionConfig
 from activeloc_ros.perception.features import Features, resolve_precision
 from activeloc_ros.perception.predictor import (
-    attention_loss, configured_location, global_error, motion_weight, Predictor, surprise_map)
+    attention_loss, configured_location, gap_factor, global_error, motion_weight, Predictor,
+    surprise_map)
 
 _NO_LOSSES = {'global': 0.0, 'attn': 0.0, 'total': 0.0}
 
@@ -97,6 +99,7 @@ class Observation:
     warp: np.ndarray | None = None     # the camera's motion since the previous frame
     f_prev: torch.Tensor | None = None  # (N, C) the previous view encoded again, if it was
     change: torch.Tensor | None = None  # (N,) picture change (motion_source: image)
+    gap: float | None = None           # seconds since the previous frame's capture, if known
 
 
 @dataclass
@@ -199,6 +202,7 @@ class SurpriseModel:
         self.img_prev = None       # (S, S, 3) previous resized image (ego_motion)
         self.keys_prev = None      # its ORB keypoints and descriptors (ego_motion)
         self.grey_prev = None      # (S, S) its blurred grey picture (motion_source image)
+        self.t_prev = None         # its capture time, s, if given
 
     def _forget_sequence(self) -> None:
         """`learn`'s memory: the predictor's state, the previous features and maps."""
@@ -245,19 +249,21 @@ class SurpriseModel:
                 return feats[0], feats[1]
             return None, self.features.of(x, learning=True)[0]
 
-    def step(self, frame: np.ndarray, *,
+    def step(self, frame: np.ndarray, *, t: float | None = None,
              on_map: Callable[[PerceptionResult], None] | None = None,
              late: Callable[[], bool] | None = None) -> PerceptionResult:
-        """Encode a frame, score the prediction made for it, update online, predict on
-        (`observe`, then `learn`, which hands the map to ``on_map`` before its optimiser
-        step, and asks ``late`` whether to skip that step)."""
-        return self.learn(self.observe(frame), on_map=on_map, late=late)
+        """Encode a frame captured at ``t`` (seconds, any origin; None: unknown), score
+        the prediction made for it, update online, predict on (`observe`, then `learn`,
+        which hands the map to ``on_map`` before its optimiser step, and asks ``late``
+        whether to skip that step)."""
+        return self.learn(self.observe(frame, t=t), on_map=on_map, late=late)
 
-    def observe(self, frame: np.ndarray) -> Observation:
-        """The first half of `step`: the frame's encoder input, its features and the
-        camera's motion since the frame before. It reads and writes only its own memory of
-        the previous frame, so it may run on the next frame while `learn` runs on this one:
-        `learn(observe(f))` for each frame in turn gives the same results in either order."""
+    def observe(self, frame: np.ndarray, *, t: float | None = None) -> Observation:
+        """The first half of `step`: the frame's encoder input, its features, the
+        camera's motion and the time since the frame before. It reads and writes only its
+        own memory of the previous frame, so it may run on the next frame while `learn`
+        runs on this one: `learn(observe(f))` for each frame in turn gives the same results
+        in either order."""
         cfg = self.cfg
         t0 = time.perf_counter()
         timings = dict.fromkeys(('preprocess', 'encode', 'predict', 'update'), 0.0)
@@ -269,6 +275,9 @@ class SurpriseModel:
             timings['preprocess'] = time.perf_counter() - t0
             return obs
         x = self.features.tensor(img)
+        if t is not None and self.t_prev is not None:
+            obs.gap = t - self.t_prev
+        self.t_prev = t
         if self.ego is not None:      # timed as preprocessing, re-encoding included
             obs.warp, obs.f_prev = self._follow_camera(img)
         if cfg.motion_source == 'image':
@@ -327,12 +336,14 @@ class SurpriseModel:
                 fhat, alpha, new_state = self._predict(f_prev, state)  # (N, C), (N,)
             fhat, alpha = fhat.float(), alpha.float()
             new_state = (new_state[0].float(), new_state[1].float())
+            per_gap = gap_factor(obs.gap, cfg.motion_period, cfg.motion_gap_power)
             if obs.change is not None:                               # (N,) grey levels
                 weight = motion_weight(obs.change, cfg.motion_weighting,
-                                       cfg.image_motion_scale)[:, None].expand_as(f_cur)
+                                       cfg.image_motion_scale * per_gap)
+                weight = weight[:, None].expand_as(f_cur)
             else:
                 weight = motion_weight((f_cur - f_prev).detach(), cfg.motion_weighting,
-                                       cfg.motion_scale)               # (N, C)
+                                       cfg.motion_scale * per_gap)     # (N, C)
             l_global, e = global_error(f_cur, fhat, weight, reduction=cfg.loss_reduction)
             l_attn = (attention_loss(alpha, target, f_prev) if cfg.attn_loss_on
                       else torch.zeros(()))
@@ -492,6 +503,7 @@ class SurpriseModel:
                 'frame_index': self.frame_index, 'updates': self.updates,
                 'grey_prev': (None if self.grey_prev is None
                               else torch.from_numpy(self.grey_prev)),
+                't_prev': self.t_prev,
             },
         }, path)
 
@@ -500,8 +512,10 @@ class SurpriseModel:
         """Rebuild a saved model; it continues learning where `save` left it."""
         from activeloc_ros.perception.encoders import build_encoder
         ckpt = torch.load(path, map_location='cpu', weights_only=True)
-        # a checkpoint saved before encoder_pad existed was learned without the border
-        cfg = PerceptionConfig.from_dict({'encoder_pad': 0, **ckpt['config']})
+        # a checkpoint saved before encoder_pad (motion_period) existed was learned without
+        # the border (with one motion scale at any frame rate)
+        cfg = PerceptionConfig.from_dict({'encoder_pad': 0, 'motion_period': 0.0,
+                                          **ckpt['config']})
         # the checkpoint holds the encoder weights: no weight cache needed
         encoder = build_encoder(cfg.encoder, pretrained=False, classifier=False)
         encoder.load_state_dict(ckpt['encoder'])
@@ -519,6 +533,7 @@ class SurpriseModel:
         model.updates = run['updates']
         grey_prev = run.get('grey_prev')
         model.grey_prev = None if grey_prev is None else grey_prev.numpy()
+        model.t_prev = run.get('t_prev')
         model._take_snapshot()
         return model
 

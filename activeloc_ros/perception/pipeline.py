@@ -45,14 +45,15 @@ class Pipeline:
                                         daemon=True)
         self._thread.start()
 
-    def submit(self, frame: np.ndarray, tag: Any = None) -> None:
-        """Observe `frame` now and queue it for learning; `tag` comes back with its result.
+    def submit(self, frame: np.ndarray, tag: Any = None, *, t: float | None = None) -> None:
+        """Observe `frame`, captured at `t` (s; None: unknown), now and queue it for
+        learning; `tag` comes back with its result.
 
         :raises FrameError: the frame is malformed (nothing is queued).
         :raises PipelineError: the learning thread failed or was closed.
         """
         self._check()
-        observation = self.model.observe(frame)
+        observation = self.model.observe(frame, t=t)
         with self._changed:
             self._pending += 1
         while True:                      # wait for the learner, but notice if it died

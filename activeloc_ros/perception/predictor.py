@@ -5,6 +5,8 @@ LSTMs, all cells one batch); the functions below weigh its error by the motion, 
 (L_global, L_attn), turn the per-cell error into the surprise map and read the action's
 location off the map. `perception.model.SurpriseModel` runs them online, one frame a step.
 """
+import math
+
 import torch
 from torch import nn
 
@@ -77,6 +79,19 @@ def motion_weight(diff: torch.Tensor, kind: str, scale: float) -> torch.Tensor:
     if kind == 'raw':
         return diff.square()
     return torch.ones_like(diff)
+
+
+GAP_FACTORS = (0.25, 4.0)   # a burst of frames or a pause does not make the weights extreme
+
+
+def gap_factor(gap: float | None, period: float, power: float) -> float:
+    """How much the motion scale grows for frames ``gap`` seconds apart (rounded to the
+    millisecond, against stamp jitter) when it was set for frames ``period`` apart:
+    (gap / period) ** power, within `GAP_FACTORS`. 1 without a period (0) or a usable gap."""
+    if not period or gap is None or not math.isfinite(gap) or round(gap, 3) <= 0:
+        return 1.0
+    low, high = GAP_FACTORS
+    return min(max((round(gap, 3) / period) ** power, low), high)
 
 
 def global_error(f_next: torch.Tensor, fhat: torch.Tensor, weight: torch.Tensor, *,
