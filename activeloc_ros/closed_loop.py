@@ -232,6 +232,7 @@ def run_episode(world, pointer: Pointer, *, controller,
         if queued is not None and busy_until <= t:
             view, queued = queued, None
             busy_until = process(view, max(busy_until, view.t))
+            recorded[view.index].processed = True    # later than its capture, but it was
         for when, cmd in sorted((p for p in pending if p[0] <= t), key=lambda p: p[0]):
             world.apply(cmd, when)
         pending[:] = [p for p in pending if p[0] > t]
