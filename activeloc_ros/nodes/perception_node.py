@@ -203,22 +203,21 @@ class PerceptionNode(Node):
 
     def process(self, header, rgb) -> None:
         started = time.monotonic()
+        captured = stamp_s(header.stamp)
         if self.pipeline is None:  # the map goes out before the optimiser step
             tag = (header, rgb, started)
-            self.model.step(rgb, t=stamp_s(header.stamp),
-                            on_map=lambda r: self.publish(r, tag),
-                            late=self._late(header.stamp))
+            self.model.step(rgb, t=captured, on_map=lambda r: self.publish(r, tag),
+                            late=self._late(captured))
         else:                      # published from the learning thread
-            self.pipeline.submit(rgb, tag=(header, rgb, started), t=stamp_s(header.stamp))
+            self.pipeline.submit(rgb, tag=(header, rgb, started), t=captured)
 
-    def _late(self, stamp) -> Callable[[], bool] | None:
+    def _late(self, captured: float) -> Callable[[], bool] | None:
         """For the model's `skip_late_updates`: whether the node's clock has passed the
         capture of the camera's next frame (this frame's stamp plus the camera's period).
         None, never late, while the period is unknown or the stamp is no capture time (a
         bag replayed with its recorded stamps). In lockstep the clock stands still while
         the model runs: never late."""
         period = self.stats.camera_period
-        captured = stamp_s(stamp)
         now = self.get_clock().now().nanoseconds * 1e-9
         if period is None or not 0.0 <= now - captured < MAX_CAPTURE_AGE_S:
             return None

@@ -88,10 +88,11 @@ def gap_factor(gap: float | None, period: float, power: float) -> float:
     """How much the motion scale grows for frames ``gap`` seconds apart (rounded to the
     millisecond, against stamp jitter) when it was set for frames ``period`` apart:
     (gap / period) ** power, within `GAP_FACTORS`. 1 without a period (0) or a usable gap."""
-    if not period or gap is None or not math.isfinite(gap) or round(gap, 3) <= 0:
+    gap = round(gap, 3) if gap is not None and math.isfinite(gap) else 0.0
+    if not period or gap <= 0:
         return 1.0
     low, high = GAP_FACTORS
-    return min(max((round(gap, 3) / period) ** power, low), high)
+    return min(max((gap / period) ** power, low), high)
 
 
 def global_error(f_next: torch.Tensor, fhat: torch.Tensor, weight: torch.Tensor, *,
