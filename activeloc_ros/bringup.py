@@ -18,6 +18,8 @@ Ctrl-C (once or more) and SIGTERM stop the graph the same way and close the bag;
 also end if bringup itself is killed (they get SIGTERM when their parent dies), and a bag
 cut off by a kill is made readable by `python -m activeloc_ros.bag reindex PATH`. Every
 node's parameters are checked before any node starts. Node errors appear on this console.
+The source node (camera, sim or tracking) starts once the monitor and the recorder hear
+perception and the controller, so they miss none of their messages.
 
     python -m activeloc_ros.bringup --ros-args -r __ns:=/robot1     # passed to every node
 
@@ -79,6 +81,8 @@ TRACKING_TOPICS = {             # and those of the tracking world (--world track
     'target/position': 'geometry_msgs/msg/PointStamped',
 }
 STARTUP_DEADLINE_S = 180.0    # model and weights load before the first map
+HEAR_DEADLINE_S = 60.0        # the source starts once bringup hears perception and the
+#                               controller, or after this long regardless
 DRAIN_QUIET_S = 2.0           # after the camera ends: stop once no map came for this long
 STOP_DEADLINE_S = 10.0
 ARM_STALE_S = 2.0             # realtime: no joint_states for this long at the end is reported
@@ -402,13 +406,25 @@ class Monitor:
         self.joints_at = -math.inf     # when the last joint_states came
         sub = self.node.create_subscription
         sub(CameraInfo, 'camera/camera_info', self.on_info, 10)
-        sub(Float32MultiArray, 'surprise_map', lambda m: self._stamp(self.maps), 10)
-        sub(PointStamped, 'action_location', self.on_location, 10)
+        # what perception and the controller publish: heard before the source starts
+        self.downstream = [
+            sub(Float32MultiArray, 'surprise_map', lambda m: self._stamp(self.maps), 10),
+            sub(PointStamped, 'action_location', self.on_location, 10)]
         if base:        # a mobile base's commands (the tracking world)
-            sub(Twist, 'cmd_vel', lambda m: self._stamp(self.commands), 10)
+            self.downstream.append(
+                sub(Twist, 'cmd_vel', lambda m: self._stamp(self.commands), 10))
         else:
-            sub(JointState, 'joint_commands', self.on_command, 10)
+            self.downstream.append(sub(JointState, 'joint_commands', self.on_command, 10))
             sub(JointState, 'joint_states', self.on_state, 10)
+
+    def hears_downstream(self, recorder=None) -> bool:
+        """Are the monitor's (and the recorder's) subscriptions to what perception and the
+        controller publish matched with their publishers? Discovery is pairwise, so a node
+        the source already talks to may not yet reach bringup's own nodes."""
+        subs = list(self.downstream)
+        if recorder is not None:
+            subs += [recorder.subs.get(s.topic_name) for s in self.downstream]
+        return all(s is not None and s.get_publisher_count() > 0 for s in subs)
 
     def _stamp(self, series):
         with self.lock:
@@ -653,15 +669,26 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
             graph = InProcessGraph(args, context)
         else:
             env = dict(os.environ, PYTHONUNBUFFERED='1')
-            children = [Child(node, args, log_dir, env) for node in graph_nodes(args)]
+            # the source (camera, sim or tracking) starts last, in the loop below
+            children = [Child(node, args, log_dir, env) for node in graph_nodes(args)[1:]]
         source = (f'world {args.world}' if args.world
                   else f'camera {args.camera}; arm {args.arm}')
         print(f'bringup: {" -> ".join(graph_nodes(args))}; {source}; {args.mode}; logs in '
               f'{log_dir}', flush=True)
         camera_done_at = None
+        first = graph_nodes(args)[0]
         while True:
             time.sleep(0.2)
             elapsed = time.monotonic() - start
+            if not graph and children[0].name != first:
+                # A recording and the monitor miss what a node sends before they have
+                # matched it; in lockstep a short run can end before that.
+                heard = monitor.hears_downstream(recorder)
+                if heard or elapsed > HEAR_DEADLINE_S:
+                    if not heard:
+                        print(f'bringup: not every node heard after {HEAR_DEADLINE_S:.0f} s; '
+                              f'starting {first} anyway', flush=True)
+                    children.insert(0, Child(first, args, log_dir, env))
             if stop.reason is not None:
                 reason = stop.reason
                 break
@@ -671,7 +698,7 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
                 break
             for child in children:
                 code = child.returncode
-                if code is not None and (child is not children[0] or code != 0) \
+                if code is not None and (child.name != first or code != 0) \
                         and child not in failed:
                     failed.append(child)
             if failed:
@@ -681,7 +708,8 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
                 reason = f'no surprise map within {STARTUP_DEADLINE_S:.0f} s'
                 failed.append(None)
                 break
-            camera_done = (graph.camera_finished() if graph else children[0].returncode == 0)
+            camera_done = (graph.camera_finished() if graph else
+                           children[0].name == first and children[0].returncode == 0)
             if camera_done and camera_done_at is None:
                 camera_done_at = time.monotonic()
             if camera_done_at is not None:

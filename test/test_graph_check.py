@@ -18,12 +18,14 @@ def test_compare_reports_the_largest_difference():
     assert 'times differ' in graph_check.compare(graph, [(0.0, 0, 0), (0.2, 0, 0)], 0.5)[1]
 
 
-def test_bundled_bag_graph_and_benchmark_agree(capsys, monkeypatch):
-    """bringup (four processes, real DDS, packaged params) against run_episode."""
+def test_bundled_bag_graph_and_benchmark_agree(capfd, monkeypatch):
+    """bringup (four processes, real DDS, packaged params) against run_episode. The
+    recording holds every frame's map: the sim starts once bringup hears perception."""
     monkeypatch.setenv('ROS_DOMAIN_ID', GRAPH_DOMAIN)
     assert graph_check.main(['--frames', '6']) == 0
-    out = capsys.readouterr().out
+    out = capfd.readouterr().out          # bringup's summary included
     assert 'frames: graph 6, bench 6' in out and 'SAME' in out
+    assert '/surprise_map 6,' in out and '/joint_commands 6,' in out
 
 
 def test_bad_options(capsys):
