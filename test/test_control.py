@@ -340,6 +340,51 @@ def test_latency_percentiles():
     assert stats.summary() == {'n': 100, 'p50': 0.05, 'p95': 0.095}
 
 
+def test_confirm_deg_moves_only_on_two_agreeing_locations():
+    """With confirm_deg, a location that calls for a move acts only when the previous still
+    frame's location pointed within confirm_deg of it (in the world); a moving camera's
+    frame in between breaks the chain; within the dead band nothing needs confirming."""
+    ctl = make_controller(pd=PDConfig(dead_band=math.radians(2.0)), settle_time=0.3,
+                          confirm_deg=5.0)
+    for k in range(5):
+        ctl.observe(HOME_DEG, k * 0.1)
+    assert ctl.on_location(pixel_for(10.0), D435.cy, 0.4, 0.4) is None     # alone
+    assert ctl.on_location(pixel_for(-20.0), D435.cy, 0.5, 0.5) is None    # 30 deg away
+    assert ctl.ignored == {'unconfirmed': 2}
+    assert ctl.on_location(pixel_for(1.0), D435.cy, 0.6, 0.6).reason == 'track'  # dead band
+    assert ctl.commands == 1 and ctl.guard.last_deg == tuple(HOME_DEG)
+    assert ctl.on_location(pixel_for(12.0), D435.cy, 0.7, 0.7) is None     # 11 deg from 1
+    command = ctl.on_location(pixel_for(8.0), D435.cy, 0.8, 0.8)           # 4 deg from 12
+    assert command.reason == 'track' and command.joints_deg[0] != HOME_DEG[0]
+    moved = [command.joints_deg[0], *HOME_DEG[1:]]
+    for k in range(9, 14):                          # the camera turned, then stood still
+        ctl.observe(moved, k * 0.1)
+    ctl.on_location(pixel_for(8.0), D435.cy, 0.9, 0.9)                     # moving: ignored
+    assert ctl.ignored['camera moving'] == 1
+    for k in range(14, 20):
+        ctl.observe(moved, k * 0.1)
+    assert ctl.on_location(pixel_for(8.0), D435.cy, 1.8, 1.8) is None      # chain broken
+    assert ctl.ignored['unconfirmed'] == 4
+    assert ctl.on_location(pixel_for(8.0), D435.cy, 1.9, 1.9).reason == 'track'
+    with pytest.raises(ConfigError, match='confirm_deg'):
+        ControllerConfig(confirm_deg=-1.0)
+
+
+def test_confirm_deg_lets_a_decided_saccade_run_to_its_end():
+    """A command at the instant of the last joint state moves nothing yet (the servos'
+    speed); with confirm_deg the next location does not replace that move: it goes on."""
+    ctl = make_controller(settle_time=0.3, confirm_deg=5.0)
+    for k in range(5):
+        ctl.observe(HOME_DEG, k * 0.1)
+    assert ctl.on_location(pixel_for(10.0), D435.cy, 0.3, 0.4) is None     # unconfirmed
+    first = ctl.on_location(pixel_for(10.0), D435.cy, 0.4, 0.4)
+    assert first.reason == 'track' and first.joints_deg == tuple(HOME_DEG)  # dt = 0
+    ctl.observe(HOME_DEG, 0.5)                       # the camera has not moved yet
+    rest = ctl.on_location(pixel_for(-20.0), D435.cy, 0.5, 0.5)
+    assert rest.reason == 'continue' and rest.joints_deg[0] > HOME_DEG[0]   # still to +10
+    assert ctl.ignored == {'unconfirmed': 1, 'saccade running': 1}
+
+
 def test_settle_time_ignores_frames_seen_by_a_moving_camera():
     """With settle_time, a location counts only if the camera stood still for that long
     before the frame was captured."""

@@ -86,7 +86,7 @@ def make_pointer(name: str, settings: dict, seed: int, *, tracker_start: str = '
 
 PD_OPTIONS = ('kp', 'kd', 'dead_band', 'derivative', 'derivative_tau')
 CONTROL_OPTIONS = ('settle_time', 'watchdog_timeout', 'step_delay_ms', 'min_peak',
-                   'pan_limit_deg', 'tilt_limit_deg')
+                   'pan_limit_deg', 'tilt_limit_deg', 'confirm_deg')
 
 
 def method_pd(name: str, control: dict) -> PDConfig:

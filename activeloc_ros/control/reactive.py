@@ -42,6 +42,15 @@ class ControllerConfig:
         home direction, left or right (the workspace, e.g. a screen's extent); the joint
         limits still apply.
     :param tilt_limit_deg: the same, up or down.
+    :param confirm_deg: act on a location that calls for a move only when the location
+        before it, from the previous frame a still camera saw, pointed within this many
+        degrees of it (pan and tilt each, as directions in the world: the camera's pose plus
+        the error). One map then decides no saccade alone: a surprise one frame shows and the
+        next does not (a passer-by's step, the model's first guesses) moves nothing, at the
+        cost of one frame's delay on every saccade. And a saccade once decided runs to its
+        end: a move the servos' speed has not let start yet (a command at the instant of the
+        last joint state, as in lockstep) is not replaced by the next location, as a camera
+        that has begun to move is not. 0: act on every location (the paper).
     """
 
     pd: PDConfig = field(default_factory=PDConfig)
@@ -53,6 +62,7 @@ class ControllerConfig:
     settle_time: float = 0.3
     pan_limit_deg: float = 180.0
     tilt_limit_deg: float = 180.0
+    confirm_deg: float = 0.0
 
     def __post_init__(self):
         for name in ('pan_limit_deg', 'tilt_limit_deg'):
@@ -67,6 +77,9 @@ class ControllerConfig:
             raise ConfigError(f'pose_slack must be >= 0 s, got {self.pose_slack}')
         if not math.isfinite(self.settle_time) or self.settle_time < 0:
             raise ConfigError(f'settle_time must be >= 0 s, got {self.settle_time}')
+        if not (math.isfinite(self.confirm_deg) and 0 <= self.confirm_deg <= 180):
+            raise ConfigError(f'confirm_deg must be within 0..180 degrees, got '
+                              f'{self.confirm_deg}')
         speed_deg_s(self.step_delay_ms)  # validates the range
 
 
@@ -206,6 +219,7 @@ class ReactiveController:
         self._last_accept = -math.inf
         self._holding = False
         self._goal: tuple[float, ...] | None = None   # a target the guard cut short
+        self._seen: tuple[float, float] | None = None  # the last still frame's (pan, tilt)
 
     @property
     def state(self) -> str:
@@ -275,16 +289,22 @@ class ReactiveController:
         if problem is not None:
             return self._ignore(problem, t_now)
         if self.config.settle_time > 0 and self._moved(t_capture):
+            self._seen = None
             return self._ignore('camera moving', t_now)
+        if self.config.confirm_deg > 0 and self._goal is not None:
+            self._seen = None                # a saccade once decided runs to its end
+            return self._ignore('saccade running', t_now)
+        pose = self._pose_at(t_capture)
+        pan, tilt = self.mapping.pan_tilt(pose)
+        error = angular_error(u, v, intr, camera_tilt=tilt)
+        if not self._confirmed(pan + error[0], tilt + error[1], error):
+            return self._ignore('unconfirmed', t_now)
         if self._holding or t_now - self._last_accept > self.config.watchdog_timeout:
             self.pd.reset()  # a fresh start: no derivative across a gap
         self._holding = False
         self._last_capture = t_capture
         self._last_accept = t_now
 
-        pose = self._pose_at(t_capture)
-        pan, tilt = self.mapping.pan_tilt(pose)
-        error = angular_error(u, v, intr, camera_tilt=tilt)
         d_pan, d_tilt = self.pd.update(error, t_capture, camera=(pan, tilt))
         if self.pd.within_dead_band(error):
             target = self.guard.last_deg  # on target or noise: no new motion
@@ -294,6 +314,15 @@ class ReactiveController:
             target = self.mapping.joints_deg(min(max(pan + d_pan, -pan_max), pan_max),
                                              min(max(tilt + d_tilt, -tilt_max), tilt_max))
         return self._emit(target, t_now, 'track', t_capture)
+
+    def _confirmed(self, pan: float, tilt: float, error: tuple[float, float]) -> bool:
+        """`confirm_deg`: does the previous still frame's location agree with this one,
+        pointing at (pan, tilt) in the world? Within the dead band nothing moves: no need."""
+        seen, self._seen = self._seen, (pan, tilt)
+        limit = math.radians(self.config.confirm_deg)
+        return (limit == 0 or self.pd.within_dead_band(error)
+                or (seen is not None and abs(pan - seen[0]) <= limit
+                    and abs(tilt - seen[1]) <= limit))
 
     def tick(self, t_now: float) -> Command | None:
         """Watchdog: when locations stop arriving, one hold command, then silence."""

@@ -67,6 +67,10 @@ PARAMS = (
     Param('settle_time', ControllerConfig.settle_time,
           'Ignore action locations from frames captured while the camera moved or less than '
           'this long after it stopped, s (0: never, the paper)', in_range(0.0, 5.0)),
+    Param('confirm_deg', ControllerConfig.confirm_deg,
+          'Act on a location that calls for a move only when the previous still frame\'s '
+          'location pointed within this many degrees of it (0: on every location, the '
+          'paper; arm only)', in_range(0.0, 180.0)),
     Param('pan_limit_deg', ControllerConfig.pan_limit_deg,
           'Never aim farther than this left or right of the home direction, degrees (the '
           'workspace; the joint limits still apply)', in_range(0.0, 180.0)),
@@ -109,6 +113,7 @@ def config_from(values: dict) -> ControllerConfig:
                             watchdog_timeout=values['watchdog_timeout'],
                             step_delay_ms=values['step_delay_ms'], min_peak=values['min_peak'],
                             settle_time=values['settle_time'],
+                            confirm_deg=values['confirm_deg'],
                             pan_limit_deg=values['pan_limit_deg'],
                             tilt_limit_deg=values['tilt_limit_deg'])
 
