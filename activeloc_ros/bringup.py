@@ -660,6 +660,8 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
     watcher.start()
 
     children, graph, failed = [], None, []
+    nodes = graph_nodes(args)
+    first = nodes[0]                    # the source: camera, sim or tracking world
     start = time.monotonic()
     tty = sys.stdout.isatty()
     last_print = 0.0
@@ -669,14 +671,13 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
             graph = InProcessGraph(args, context)
         else:
             env = dict(os.environ, PYTHONUNBUFFERED='1')
-            # the source (camera, sim or tracking) starts last, in the loop below
-            children = [Child(node, args, log_dir, env) for node in graph_nodes(args)[1:]]
+            # the source starts last, in the loop below
+            children = [Child(node, args, log_dir, env) for node in nodes[1:]]
         source = (f'world {args.world}' if args.world
                   else f'camera {args.camera}; arm {args.arm}')
-        print(f'bringup: {" -> ".join(graph_nodes(args))}; {source}; {args.mode}; logs in '
+        print(f'bringup: {" -> ".join(nodes)}; {source}; {args.mode}; logs in '
               f'{log_dir}', flush=True)
         camera_done_at = None
-        first = graph_nodes(args)[0]
         while True:
             time.sleep(0.2)
             elapsed = time.monotonic() - start
