@@ -11,7 +11,7 @@ import pytest
 
 from activeloc_ros.bench import tracking as bench
 from activeloc_ros.bench.pointers import ModelPointer, OraclePointer
-from activeloc_ros.closed_loop import FrameRecord, run_episode
+from activeloc_ros.closed_loop import FrameRecord, Pointing, run_episode
 from activeloc_ros.control.base import BaseConfig, BaseController, Twist
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.tracking import reward
@@ -127,6 +127,41 @@ def test_oracle_follows_the_walker(tmp_path):
     assert score.length == 60 and score.precision > 0.5 * 60 / 500
 
 
+class CornerPointer:
+    """Points at the view's top-left corner with a box standing on its bottom edge."""
+    name = 'corner'
+
+    def reset(self, sequence):
+        pass
+
+    def locate(self, view):
+        h = view.rgb.shape[0]
+        return Pointing((1.0, 1.0), box=(0, h - 40, 10, 40))
+
+
+def test_the_benchmark_checks_each_answer_against_the_truth_of_its_step():
+    config = BaseConfig()
+    with TrackingWorld('room', 0, TrackingConfig(max_steps=8)) as world:
+        oracle = bench.Remembering(OraclePointer(), world, world.controller(config))
+        run_episode(world, oracle, controller=config, name='room')
+    scores = oracle.scores()
+    assert oracle.located == 8 and scores['on_target'] == 1.0
+    assert scores['distance_error_m'] < 0.3      # the true box's foot: the true distance
+    distances = []
+    with TrackingWorld('room', 0, TrackingConfig(max_steps=8)) as world:
+        corner = bench.Remembering(CornerPointer(), world, world.controller(config))
+        run_episode(world, corner, controller=config, name='room', on_frame=lambda _, record,
+                    __: distances.append(math.dist(record.base_xy, record.target_xy)))
+        reading = world.controller(config).distance_to((0, world.config.height - 40, 10, 40))
+    scores = corner.scores()
+    assert corner.located == 8 and scores['on_target'] == 0.0
+    assert scores['distance_error_m'] == pytest.approx(
+        np.median([abs(reading - d) for d in distances]))
+    unchecked = bench.Remembering(CornerPointer())       # no world: nothing to check against
+    unchecked.locate(world.view)
+    assert unchecked.located == 0 and math.isnan(unchecked.scores()['on_target'])
+
+
 def test_bench_tracking_smoke(tmp_path, capsys):
     out = tmp_path / 'out'
     assert bench.main(['--scenes', 'room', '--methods', 'ours', 'kcf', 'oracle', '--episodes',
@@ -139,6 +174,9 @@ def test_bench_tracking_smoke(tmp_path, capsys):
     assert {r['method'] for r in result['methods']} == {'ours', 'kcf', 'oracle'}
     oracle = next(r for r in result['methods'] if r['method'] == 'oracle')
     assert 2.0 < oracle['scenes']['room']['distance_m'] < 3.5   # starts 2.5 m behind, keeps it
+    assert oracle['scenes']['room']['on_target'] == 1.0
+    assert oracle['scenes']['room']['distance_error_m'] < 0.3
+    assert '| on target | distance error |' in text
     for name in ('table1.md', 'table1.csv', 'room.png'):
         assert (out / name).stat().st_size > 0
     with av.open(str(out / 'videos' / 'room' / 'ours-0.mp4')) as container:

@@ -8,7 +8,10 @@ camera. Episode e of a scene is built from seed ``1000 * seed + e``, whatever th
 Scores per scene, means over the episodes (AD-VAT's, `tracking.reward`): recall (episode
 length / 500), precision (summed reward / 500), precision with the distance term relaxed,
 episode length, accumulated reward and success rate (the whole 500 steps); also the mean
-bearing error and the share of steps with the target in view.
+bearing error, the share of steps with the target in view, the median distance to the
+person, and two checks of each method's answers against the truth of their step: the share
+of locations inside the target's true box, and the median error of the distance the forward
+rule reads from the method's box (what decides how close the base drives).
 
 Methods: ours (the perception model turning toward its surprise peak), the Table 3 rows
 (model ablations and PD variants, on the room scene only), the trackers TLD / MIL / MOSSE /
@@ -42,7 +45,7 @@ from activeloc_ros.bench.screen import method_pd, MODEL_METHODS, PD_OPTIONS, TRA
 from activeloc_ros.bench.video import (
     commit_video, discard_videos, H264Writer, temporary_path)
 from activeloc_ros.closed_loop import FrameRecord, MODES, Pointing, run_episode
-from activeloc_ros.control.base import BaseConfig, FORWARD_RULES
+from activeloc_ros.control.base import BaseConfig, BaseController, FORWARD_RULES
 from activeloc_ros.errors import ActivelocError, ConfigError
 from activeloc_ros.paths import write_atomic
 from activeloc_ros.progress import Progress
@@ -53,7 +56,8 @@ MAIN_METHODS = ('ours', *TRACKER_METHODS, 'random', 'oracle')
 ABLATION_METHODS = tuple(m for m in MODEL_METHODS if m != 'ours')
 ABLATION_SCENE = 'room'
 SCORES = ('recall', 'precision', 'precision_relaxed', 'episode_length', 'reward', 'success',
-          'aae_deg', 'in_view', 'distance_m')
+          'aae_deg', 'in_view', 'distance_m', 'on_target', 'distance_error_m')
+DISTANCE_RULES = ('ground', 'size')      # the forward rules that read a distance off a box
 # Paper Table 1: ours' recall per scene (our reading of its figures), the reference row.
 PAPER_OURS_RECALL = {'snow': 0.75, 'room': 0.68, 'urban': 0.85, 'parking': 0.49}
 
@@ -77,11 +81,23 @@ def make_pointer(method: str, settings: dict, seed: int):
 
 
 class Remembering:
-    """A pointer that keeps its newest answer, for the overlay video."""
+    """A pointer that keeps its newest answer, for the overlay video, and checks each answer
+    against the truth of the step it was made on: whether the location lies on the target
+    (inside its true box), and how far the distance that the base controller's forward rule
+    reads from the answer's box (``witness.distance_to``) is from the true distance.
 
-    def __init__(self, pointer):
+    :param world: the world the pointer looks at; its state is the view's when the pointer
+        answers (None: nothing is checked).
+    :param witness: a controller configured as the method's, used only for its readings.
+    """
+
+    def __init__(self, pointer, world=None, witness: BaseController | None = None):
         self.pointer, self.name = pointer, pointer.name
+        self.world, self.witness = world, witness
         self.last: Pointing | None = None
+        self.located = 0                       # steps with a location
+        self.on_target = 0                     # ... inside the target's true box
+        self.distance_errors: list[float] = []  # |forward rule's distance - true|, m
 
     def reset(self, sequence: str) -> None:
         self.pointer.reset(sequence)
@@ -89,7 +105,27 @@ class Remembering:
 
     def locate(self, view) -> Pointing:
         self.last = self.pointer.locate(view)
+        if self.world is not None and self.last.location is not None:
+            self.located += 1
+            if view.truth_box is not None and _inside(self.last.location, view.truth_box):
+                self.on_target += 1
+            reads = self.witness is not None and self.witness.config.forward in DISTANCE_RULES
+            reading = self.witness.distance_to(self.last.box) if reads else None
+            if reading is not None:
+                self.distance_errors.append(abs(reading - self.world.relative()[0]))
         return self.last
+
+    def scores(self) -> dict[str, float]:
+        """The share of located steps on the target, and the forward rule's median distance
+        error (nan where there was nothing to count)."""
+        return {'on_target': self.on_target / self.located if self.located else math.nan,
+                'distance_error_m': (float(np.median(self.distance_errors))
+                                     if self.distance_errors else math.nan)}
+
+
+def _inside(point: tuple[float, float], box: tuple) -> bool:
+    x, y, w, h = box
+    return x <= point[0] < x + w and y <= point[1] < y + h
 
 
 class TrackingVideo:
@@ -201,14 +237,14 @@ def _run_job(job: dict) -> dict:
         key = (job['method'], json.dumps(job['settings'], sort_keys=True), job['seed'])
         if key not in _POINTERS:
             _POINTERS[key] = make_pointer(job['method'], job['settings'], job['seed'])
-        pointer = Remembering(_POINTERS[key])
         config = TrackingConfig(**job['world'])
+        control = base_config(job['method'], job['control'])
         with TrackingWorld(job['scene'], job['episode_seed'], config) as world:
+            pointer = Remembering(_POINTERS[key], world, world.controller(control))
             video = (TrackingVideo(Path(job['video']), world, pointer, job['method'])
                      if job['video'] else None)
             try:
-                episode = run_episode(world, pointer, controller=base_config(
-                    job['method'], job['control']), mode=job['mode'],
+                episode = run_episode(world, pointer, controller=control, mode=job['mode'],
                     name=f'{job["scene"]}-{job["episode"]}',
                     on_frame=video.add if video else None)
             except BaseException:
@@ -217,7 +253,7 @@ def _run_job(job: dict) -> dict:
                 raise
             if video:
                 video.finish()
-            scores = world.episode_score().as_dict()
+            scores = {**world.episode_score().as_dict(), **pointer.scores()}
     except ActivelocError as err:
         return {**where, 'error': str(err)}
     except Exception:  # noqa: B902 - one broken run must not cost the others
@@ -278,8 +314,7 @@ def summarise(runs: list[dict], methods: list[str], scenes: list[str]) -> dict:
                     and 'error' not in r]
             if not done:
                 continue
-            per_scene[scene] = {k: float(np.mean([r['scores'][k] for r in done]))
-                                for k in SCORES}
+            per_scene[scene] = {k: _mean([r['scores'][k] for r in done]) for k in SCORES}
             per_scene[scene]['episodes'] = len(done)
             per_scene[scene]['compute_ms'] = float(np.mean([r['compute_ms'] for r in done]))
         rows.append({'method': method, 'scenes': per_scene})
@@ -288,6 +323,13 @@ def summarise(runs: list[dict], methods: list[str], scenes: list[str]) -> dict:
                        for r in failed],
             'episodes': [{k: r[k] for k in ('method', 'scene', 'episode', 'scores',
                                               'rewards')} for r in runs if 'error' not in r]}
+
+
+def _mean(values: list[float]) -> float:
+    """Mean over the episodes that have the score (a method without boxes has no distance
+    error); nan when none has."""
+    finite = [v for v in values if math.isfinite(v)]
+    return float(np.mean(finite)) if finite else math.nan
 
 
 def _cell(s: dict | None) -> str:
@@ -311,9 +353,12 @@ def table(result: dict, methods: list[str], scenes: list[str], *, title: str) ->
                      + ' | '.join('reported in Unreal, not comparable | -' for _ in scenes)
                      + ' |')
     lines += ['', 'episode length, accumulated reward, success rate, mean |bearing| (deg), in '
-              'view (%), median distance to the person (m; the goal is 2.5), ms per step:', '',
-              '| method | scene | length | reward | success | bearing | in view | distance | ms |',
-              '|---|---|---:|---:|---:|---:|---:|---:|---:|']
+              'view (%), median distance to the person (m; the goal is 2.5), the share of '
+              'locations on the person (inside its true box, %), the median error of the '
+              'distance the forward rule reads from the method\'s box (m), ms per step:', '',
+              '| method | scene | length | reward | success | bearing | in view | distance '
+              '| on target | distance error | ms |',
+              '|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|']
     for row in result['methods']:
         if row['method'] not in methods:
             continue
@@ -323,8 +368,13 @@ def table(result: dict, methods: list[str], scenes: list[str], *, title: str) ->
                 lines.append(f'| {row["method"]} | {scene} | {s["episode_length"]:.0f} | '
                              f'{s["reward"]:.1f} | {100 * s["success"]:.0f}% | '
                              f'{s["aae_deg"]:.1f} | {100 * s["in_view"]:.0f} | '
-                             f'{s["distance_m"]:.1f} | {s["compute_ms"]:.0f} |')
+                             f'{s["distance_m"]:.1f} | {_number(100 * s["on_target"], 0)} | '
+                             f'{_number(s["distance_error_m"], 2)} | {s["compute_ms"]:.0f} |')
     return '\n'.join(lines) + '\n'
+
+
+def _number(value: float, digits: int) -> str:
+    return f'{value:.{digits}f}' if math.isfinite(value) else '-'
 
 
 def to_csv(result: dict) -> str:
