@@ -269,6 +269,37 @@ def test_a_run_time_change_that_would_not_apply_is_refused_with_the_reason(graph
     assert {k: controller.get_parameter(k).value for k in values} == before
 
 
+def test_a_base_setting_is_refused_by_the_arms_controller(graph):
+    executor, controller, probe = graph()
+    [result] = set_remote(executor, probe, distance=3.0)
+    assert not result.successful and 'distance would have no effect' in result.reason
+    assert controller.get_parameter('distance').value == 2.5
+
+
+def test_an_arm_setting_is_refused_by_a_bases_controller_and_named_at_start(context, capfd):
+    from types import SimpleNamespace
+    from activeloc_ros.nodes.controller_node import ControllerNode
+    controller = ControllerNode(context=context, cli_args=params_args(
+        'controller', 'actuator:=base', 'settle_time:=0.5'))
+    probe = SimpleNamespace(node=Node('probe', context=context))
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(controller)
+    executor.add_node(probe.node)
+    try:
+        warned = capfd.readouterr().err
+        assert 'settle_time 0.5 has no effect: this controller drives a mobile base' in warned
+        assert 'confirm_deg' not in warned           # left at its default: nothing to say
+        [result] = set_remote(executor, probe, confirm_deg=8.0)
+        assert not result.successful and 'confirm_deg would have no effect' in result.reason
+        assert controller.get_parameter('confirm_deg').value == 0.0
+        [result] = set_remote(executor, probe, distance=3.0)   # its own: applied
+        assert result.successful and controller.core.config.distance == 3.0
+    finally:
+        executor.shutdown()
+        controller.destroy_node()
+        probe.node.destroy_node()
+
+
 def test_gains_under_a_pd_variant_are_refused_not_ignored(graph):
     executor, controller, probe = graph('pd_variant:=paper')
     [result] = set_remote(executor, probe, kp=0.2)

@@ -16,7 +16,9 @@ reach this node after it: the controller then knows the camera's pose at capture
 With ``actuator: base`` (`control.base`) it subscribes ``odom`` (nav_msgs/Odometry) in place
 of ``joint_states`` and ``action_region`` (the box of what is at the location, for the
 forward rule), and publishes ``cmd_vel`` (geometry_msgs/Twist) in place of
-``joint_commands``.
+``joint_commands``. A setting only the other actuator reads (the arm's settle time, aim
+limits, confirmation; the base's forward rule) is refused at run time, and named with a
+warning when set at start, rather than silently ignored.
 """
 import math
 import threading
@@ -120,6 +122,15 @@ def config_from(values: dict) -> ControllerConfig:
 
 BASE_PARAMS = ('forward', 'distance', 'distance_gain', 'pace', 'max_speed', 'max_turn_deg_s',
                'camera_height', 'camera_tilt_deg', 'actions')
+# the settings only the arm's controller reads (its joint mapping and servo speed are
+# read-only besides)
+ARM_PARAMS = ('settle_time', 'confirm_deg', 'pan_limit_deg', 'tilt_limit_deg', 'step_delay_ms',
+              *(p.name for p in MAPPING_PARAMS))
+
+
+def unread(actuator: str) -> tuple[str, ...]:
+    """The parameters the controller of ``actuator`` does not read: the other one's."""
+    return ARM_PARAMS if actuator == 'base' else BASE_PARAMS
 
 
 def base_config_from(values: dict) -> BaseConfig:
@@ -133,6 +144,11 @@ def base_config_from(values: dict) -> BaseConfig:
 def check_change(values: dict, changed: set) -> 'str | None':
     """Refuse a run-time change that would be accepted but have no effect, or a set of
     values the core refuses."""
+    moot = sorted(changed & set(unread(values['actuator'])))
+    if moot:
+        return (f'{", ".join(moot)} would have no effect: this controller drives '
+                f'{"a mobile base" if values["actuator"] == "base" else "the arm"} '
+                f'(actuator {values["actuator"]!r}), which does not read it')
     ignored = sorted(changed & {'kp', 'kd'})
     if values['pd_variant'] and ignored and 'pd_variant' not in changed:
         return (f'{", ".join(ignored)} would have no effect: pd_variant '
@@ -152,6 +168,13 @@ class ControllerNode(Node):
                          use_global_arguments=kwargs.get('use_global_arguments', True),
                          check_all=check_change, on_change=self.on_parameters)
         self.base = values['actuator'] == 'base'
+        defaults = {p.name: p.default for p in PARAMS}
+        for name in unread(values['actuator']):
+            if values[name] != defaults[name]:
+                self.get_logger().warning(
+                    f'{name} {values[name]!r} has no effect: this controller drives '
+                    f'{"a mobile base" if self.base else "the arm"} (actuator '
+                    f'{values["actuator"]!r}), which does not read it')
         # on a simulated clock (lockstep) t0 is 0, as in closed_loop
         if self.base:
             self.config = base_config_from(values)
