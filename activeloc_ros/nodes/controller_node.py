@@ -148,7 +148,8 @@ def check_change(values: dict, changed: set) -> 'str | None':
     if moot:
         return (f'{", ".join(moot)} would have no effect: this controller drives '
                 f'{"a mobile base" if values["actuator"] == "base" else "the arm"} '
-                f'(actuator {values["actuator"]!r}), which does not read it')
+                f'(actuator {values["actuator"]!r}), which does not read '
+                f'{"it" if len(moot) == 1 else "them"}')
     ignored = sorted(changed & {'kp', 'kd'})
     if values['pd_variant'] and ignored and 'pd_variant' not in changed:
         return (f'{", ".join(ignored)} would have no effect: pd_variant '
