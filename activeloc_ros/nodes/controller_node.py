@@ -133,6 +133,12 @@ def unread(actuator: str) -> tuple[str, ...]:
     return ARM_PARAMS if actuator == 'base' else BASE_PARAMS
 
 
+def unread_reason(actuator: str, count: int = 1) -> str:
+    """Why ``count`` settings of the other actuator do nothing on ``actuator``'s controller."""
+    return (f'this controller drives {"a mobile base" if actuator == "base" else "the arm"} '
+            f'(actuator {actuator!r}), which does not read {"it" if count == 1 else "them"}')
+
+
 def base_config_from(values: dict) -> BaseConfig:
     """The base controller's config from validated parameter values (raises ConfigError):
     the PD, watchdog and information rule the arm's would have, and the base's own."""
@@ -146,10 +152,8 @@ def check_change(values: dict, changed: set) -> 'str | None':
     values the core refuses."""
     moot = sorted(changed & set(unread(values['actuator'])))
     if moot:
-        return (f'{", ".join(moot)} would have no effect: this controller drives '
-                f'{"a mobile base" if values["actuator"] == "base" else "the arm"} '
-                f'(actuator {values["actuator"]!r}), which does not read '
-                f'{"it" if len(moot) == 1 else "them"}')
+        return (f'{", ".join(moot)} would have no effect: '
+                + unread_reason(values['actuator'], len(moot)))
     ignored = sorted(changed & {'kp', 'kd'})
     if values['pd_variant'] and ignored and 'pd_variant' not in changed:
         return (f'{", ".join(ignored)} would have no effect: pd_variant '
@@ -172,10 +176,8 @@ class ControllerNode(Node):
         defaults = {p.name: p.default for p in PARAMS}
         for name in unread(values['actuator']):
             if values[name] != defaults[name]:
-                self.get_logger().warning(
-                    f'{name} {values[name]!r} has no effect: this controller drives '
-                    f'{"a mobile base" if self.base else "the arm"} (actuator '
-                    f'{values["actuator"]!r}), which does not read it')
+                self.get_logger().warning(f'{name} {values[name]!r} has no effect: '
+                                          + unread_reason(values['actuator']))
         # on a simulated clock (lockstep) t0 is 0, as in closed_loop
         if self.base:
             self.config = base_config_from(values)
