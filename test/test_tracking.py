@@ -75,8 +75,13 @@ def test_ground_rule_reads_the_distance_from_the_box_foot():
         v = SHORT.intrinsics.cy + SHORT.intrinsics.fy * math.tan(down)
         box = (150, v - 80, 20, 80.5)     # its bottom edge on that image row
         assert ctl.distance_to(box) == pytest.approx(distance, rel=0.01)
-    near = ctl.on_location(160, 100, 0.1, 0.1, box=(150, 100, 20, 139))
-    assert near.twist.forward == 0.0                        # too near: it does not go on
+    near_box = (150, 100, 20, 139)                          # its foot at the image's bottom
+    near = ctl.on_location(160, 100, 0.1, 0.1, box=near_box)
+    assert -cfg.max_reverse <= near.twist.forward < 0       # too near: it backs away
+    still = controller(max_reverse=0.0).on_location(160, 100, 0.1, 0.1, box=near_box)
+    assert still.twist.forward == 0.0                       # or, told not to, it stays
+    with pytest.raises(ConfigError, match='max_reverse'):
+        BaseConfig(max_reverse=-1.0)
 
 
 def test_discrete_actions_are_advat_seven():

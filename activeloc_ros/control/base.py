@@ -17,8 +17,10 @@ blob):
 - ``constant``: ``pace`` m/s whenever a location is accepted;
 - ``none``: turn only.
 
-The speed is ``distance_gain`` times the distance error, within 0 and ``max_speed``; without a
-box the base keeps ``pace``. It slows as cos(bearing error): it turns first, then goes. No
+The speed is ``distance_gain`` times the distance error, within ``-max_reverse`` and
+``max_speed``: a target nearer than ``distance`` makes the base back away, so a person who
+turns back is not lost past the edge of the view (README, active tracking); without a box
+the base keeps ``pace``. It slows as cos(bearing error): it turns first, then goes. No
 location for ``watchdog_timeout`` s stops the base. ``actions: discrete`` snaps each command
 to AD-VAT's seven actions (stop, forward, backward, turn left or right, forward and turn
 left or right).
@@ -53,6 +55,8 @@ class BaseConfig:
     :param camera_height: the camera's height above the floor, m (the ``ground`` rule).
     :param distance: the distance to keep, m (AD-VAT's 2.5).
     :param distance_gain: forward speed per metre of distance error, 1/s.
+    :param max_reverse: top backward speed (m/s) when the target is nearer than
+        ``distance``; 0: never back away (AD-VAT's action set has a backward action).
     :param min_peak: as the arm controller's: a weaker map carries no information.
     :param discrete_speed: forward speed (m/s) of AD-VAT's moving actions.
     :param discrete_turn_deg_s: turn rate of its turning actions.
@@ -68,6 +72,7 @@ class BaseConfig:
     distance: float = 2.5
     distance_gain: float = 1.5
     pace: float = 1.0
+    max_reverse: float = 0.5
     size_frames: int = 5
     min_peak: float = 0.0102
     watchdog_timeout: float = 2.0
@@ -81,7 +86,7 @@ class BaseConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f'{name} must be > 0, got {value}')
-        for name in ('pace', 'distance_gain'):
+        for name in ('pace', 'distance_gain', 'max_reverse'):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f'{name} must be >= 0, got {value}')
@@ -206,7 +211,8 @@ class BaseController:
         distance = None if cfg.forward == 'constant' else self.distance_to(box)
         if distance is None:
             return min(cfg.pace, cfg.max_speed)
-        return min(max(cfg.distance_gain * (distance - cfg.distance), 0.0), cfg.max_speed)
+        return min(max(cfg.distance_gain * (distance - cfg.distance), -cfg.max_reverse),
+                   cfg.max_speed)
 
     def tick(self, t_now: float) -> BaseCommand | None:
         """Watchdog: when locations stop arriving, one stop command, then silence."""

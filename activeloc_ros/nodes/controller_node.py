@@ -90,6 +90,8 @@ PARAMS = (
     Param('pace', BaseConfig.pace, 'base: forward speed of the constant rule, m/s',
           non_negative),
     Param('max_speed', BaseConfig.max_speed, 'base: top forward speed, m/s', positive),
+    Param('max_reverse', BaseConfig.max_reverse, 'base: top backward speed when the target '
+          'is nearer than distance, m/s (0: never back away)', non_negative),
     Param('max_turn_deg_s', BaseConfig.max_turn_deg_s, 'base: top turn rate, deg/s', positive),
     Param('camera_height', BaseConfig.camera_height, "base: the camera's height, m",
           positive),
@@ -120,8 +122,8 @@ def config_from(values: dict) -> ControllerConfig:
                             tilt_limit_deg=values['tilt_limit_deg'])
 
 
-BASE_PARAMS = ('forward', 'distance', 'distance_gain', 'pace', 'max_speed', 'max_turn_deg_s',
-               'camera_height', 'camera_tilt_deg', 'actions')
+BASE_PARAMS = ('forward', 'distance', 'distance_gain', 'pace', 'max_speed', 'max_reverse',
+               'max_turn_deg_s', 'camera_height', 'camera_tilt_deg', 'actions')
 # the settings only the arm's controller reads (its joint mapping and servo speed are
 # read-only besides)
 ARM_PARAMS = ('settle_time', 'confirm_deg', 'pan_limit_deg', 'tilt_limit_deg', 'step_delay_ms',
