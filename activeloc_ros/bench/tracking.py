@@ -46,6 +46,7 @@ from activeloc_ros.bench.video import (
     commit_video, discard_videos, H264Writer, temporary_path)
 from activeloc_ros.closed_loop import FrameRecord, MODES, Pointing, run_episode
 from activeloc_ros.control.base import BaseConfig, BaseController, FORWARD_RULES
+from activeloc_ros.data import Box
 from activeloc_ros.errors import ActivelocError, ConfigError
 from activeloc_ros.paths import write_atomic
 from activeloc_ros.progress import Progress
@@ -107,7 +108,7 @@ class Remembering:
         self.last = self.pointer.locate(view)
         if self.world is not None and self.last.location is not None:
             self.located += 1
-            if view.truth_box is not None and _inside(self.last.location, view.truth_box):
+            if view.truth_box is not None and Box(*view.truth_box).contains(*self.last.location):
                 self.on_target += 1
             reads = self.witness is not None and self.witness.config.forward in DISTANCE_RULES
             reading = self.witness.distance_to(self.last.box) if reads else None
@@ -121,11 +122,6 @@ class Remembering:
         return {'on_target': self.on_target / self.located if self.located else math.nan,
                 'distance_error_m': (float(np.median(self.distance_errors))
                                      if self.distance_errors else math.nan)}
-
-
-def _inside(point: tuple[float, float], box: tuple) -> bool:
-    x, y, w, h = box
-    return x <= point[0] < x + w and y <= point[1] < y + h
 
 
 class TrackingVideo:
