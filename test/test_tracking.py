@@ -90,6 +90,15 @@ def test_discrete_actions_are_advat_seven():
     rate = math.radians(ctl.config.discrete_turn_deg_s)
     assert command.twist.turn == -rate
     assert command.twist.forward in (0.0, ctl.config.discrete_speed)
+    near_box = (150, 100, 20, 139)                          # its foot at the image's bottom
+    back = ctl.discrete(Twist(-ctl.config.max_reverse, 0.0))
+    assert back == Twist(-ctl.config.max_reverse, 0.0)     # backing away survives the snap
+    assert ctl.discrete(Twist(-0.1, 0.0)).forward == 0.0    # a small step back: stop
+    near = controller(actions='discrete').on_location(160, 100, 0.1, 0.1, box=near_box)
+    assert near.twist.forward == -ctl.config.max_reverse
+    still = controller(actions='discrete', max_reverse=0.0).on_location(
+        160, 100, 0.1, 0.1, box=near_box)
+    assert still.twist.forward == 0.0
     with pytest.raises(ConfigError, match='actions'):
         BaseConfig(actions='joystick')
 

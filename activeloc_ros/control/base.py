@@ -239,10 +239,14 @@ class BaseController:
 
     def discrete(self, twist: Twist) -> Twist:
         """The AD-VAT action nearest ``twist``: forward, backward or neither, combined with
-        a left or right turn or none (never backward and turning)."""
+        a left or right turn or none (never backward and turning). Backward goes no faster
+        than ``max_reverse`` (0: no backward action), and is taken once ``twist`` backs away
+        at half that speed: the continuous rule never asks for more than ``max_reverse``, so
+        a threshold at half ``discrete_speed`` (1 m/s against 0.5) would never be passed."""
         cfg = self.config
         speed, rate = cfg.discrete_speed, math.radians(cfg.discrete_turn_deg_s)
-        forward = speed if twist.forward > speed / 2 else -speed if twist.forward < -speed / 2 \
-            else 0.0
+        back = min(speed, cfg.max_reverse)
+        forward = speed if twist.forward > speed / 2 else (
+            -back if back > 0 and twist.forward <= -back / 2 else 0.0)
         turn = rate if twist.turn > rate / 2 else -rate if twist.turn < -rate / 2 else 0.0
         return Twist(forward, 0.0 if forward < 0 else turn)
