@@ -239,10 +239,9 @@ class BaseController:
 
     def discrete(self, twist: Twist) -> Twist:
         """The AD-VAT action nearest ``twist``: forward, backward or neither, combined with
-        a left or right turn or none (never backward and turning). Backward goes no faster
-        than ``max_reverse`` (0: no backward action), and is taken once ``twist`` backs away
-        at half that speed: the continuous rule never asks for more than ``max_reverse``, so
-        a threshold at half ``discrete_speed`` (1 m/s against 0.5) would never be passed."""
+        a left or right turn or none (never backward and turning). Backward runs at
+        ``max_reverse`` at most (0: no backward action) and is taken once ``twist`` backs
+        away at half that: the continuous rule never backs away faster than ``max_reverse``."""
         cfg = self.config
         speed, rate = cfg.discrete_speed, math.radians(cfg.discrete_turn_deg_s)
         back = min(speed, cfg.max_reverse)
