@@ -19,6 +19,7 @@ from activeloc_ros.tracking.world import TrackingConfig, TrackingWorld
 from conftest import REPO
 
 SHORT = TrackingConfig(max_steps=30)
+NEAR_BOX = (150, 100, 20, 139)        # a person whose foot is at the image's bottom
 
 
 @pytest.mark.parametrize('distance, bearing_deg, expected', [
@@ -75,10 +76,9 @@ def test_ground_rule_reads_the_distance_from_the_box_foot():
         v = SHORT.intrinsics.cy + SHORT.intrinsics.fy * math.tan(down)
         box = (150, v - 80, 20, 80.5)     # its bottom edge on that image row
         assert ctl.distance_to(box) == pytest.approx(distance, rel=0.01)
-    near_box = (150, 100, 20, 139)                          # its foot at the image's bottom
-    near = ctl.on_location(160, 100, 0.1, 0.1, box=near_box)
+    near = ctl.on_location(160, 100, 0.1, 0.1, box=NEAR_BOX)
     assert -cfg.max_reverse <= near.twist.forward < 0       # too near: it backs away
-    still = controller(max_reverse=0.0).on_location(160, 100, 0.1, 0.1, box=near_box)
+    still = controller(max_reverse=0.0).on_location(160, 100, 0.1, 0.1, box=NEAR_BOX)
     assert still.twist.forward == 0.0                       # or, told not to, it stays
     with pytest.raises(ConfigError, match='max_reverse'):
         BaseConfig(max_reverse=-1.0)
@@ -90,14 +90,13 @@ def test_discrete_actions_are_advat_seven():
     rate = math.radians(ctl.config.discrete_turn_deg_s)
     assert command.twist.turn == -rate
     assert command.twist.forward in (0.0, ctl.config.discrete_speed)
-    near_box = (150, 100, 20, 139)                          # its foot at the image's bottom
     back = ctl.discrete(Twist(-ctl.config.max_reverse, 0.0))
     assert back == Twist(-ctl.config.max_reverse, 0.0)     # backing away survives the snap
     assert ctl.discrete(Twist(-0.1, 0.0)).forward == 0.0    # a small step back: stop
-    near = controller(actions='discrete').on_location(160, 100, 0.1, 0.1, box=near_box)
+    near = controller(actions='discrete').on_location(160, 100, 0.1, 0.1, box=NEAR_BOX)
     assert near.twist.forward == -ctl.config.max_reverse
     still = controller(actions='discrete', max_reverse=0.0).on_location(
-        160, 100, 0.1, 0.1, box=near_box)
+        160, 100, 0.1, 0.1, box=NEAR_BOX)
     assert still.twist.forward == 0.0
     with pytest.raises(ConfigError, match='actions'):
         BaseConfig(actions='joystick')
