@@ -2,13 +2,12 @@
 import json
 import math
 from pathlib import Path
-import time
 
 import cv2
 import numpy as np
 import pytest
 
-from activeloc_ros import data
+from activeloc_ros import closed_loop, data
 from activeloc_ros.bench import screen as bench
 from activeloc_ros.bench.pointers import CentrePointer, OraclePointer, RandomPointer
 from activeloc_ros.closed_loop import gaze_map, Pointing, run_episode, screen_world
@@ -179,21 +178,43 @@ def test_lockstep_is_deterministic(tmp_path):
     assert len({p for p, _, _ in runs[0]}) > 5      # the random target does move the camera
 
 
-class SlowOracle(OraclePointer):
-    """The oracle, taking `delay` seconds per frame."""
+class ComputeClock:
+    """The realtime benchmark's clock, moved on only by the pointers below, so each
+    frame costs exactly their delay however busy the machine is (a loaded machine made
+    a real sleep overrun and dropped one frame more in one run than in the other)."""
 
-    def __init__(self, delay: float):
-        self.delay = delay
+    def __init__(self):
+        self.now = 0.0
+
+    def perf_counter(self) -> float:
+        return self.now
+
+    def spend(self, seconds: float) -> None:
+        self.now += seconds
+
+
+@pytest.fixture
+def clock(monkeypatch) -> ComputeClock:
+    clock = ComputeClock()
+    monkeypatch.setattr(closed_loop, 'time', clock)
+    return clock
+
+
+class SlowOracle(OraclePointer):
+    """The oracle, taking `delay` seconds of `clock` per frame."""
+
+    def __init__(self, delay: float, clock: ComputeClock):
+        self.delay, self.clock = delay, clock
 
     def locate(self, view) -> Pointing:
-        time.sleep(self.delay)
+        self.clock.spend(self.delay)
         return super().locate(view)
 
 
-def test_realtime_drops_frames_a_slow_pointer_cannot_take(tmp_path):
+def test_realtime_drops_frames_a_slow_pointer_cannot_take(tmp_path, clock):
     seq = data.load_sequence(make_walker(tmp_path, fps=20.0))
-    lock = episode(seq, SlowOracle(0.12))
-    real = episode(seq, SlowOracle(0.12), mode='realtime')
+    lock = episode(seq, SlowOracle(0.12, clock))
+    real = episode(seq, SlowOracle(0.12, clock), mode='realtime')
     assert lock.summary()['processed'] == 40
     # a frame every 50 ms, 120+ ms each: at most every second frame goes through
     assert real.summary()['processed'] <= 21
@@ -211,10 +232,10 @@ class EarlyOracle(SlowOracle):
 
 
 def test_realtime_commands_leave_when_the_answer_is_ready_not_when_the_pointer_is_done(
-        tmp_path):
+        tmp_path, clock):
     seq = data.load_sequence(make_walker(tmp_path, fps=20.0))
-    late = episode(seq, SlowOracle(0.12), mode='realtime').summary()
-    early = episode(seq, EarlyOracle(0.12), mode='realtime').summary()
+    late = episode(seq, SlowOracle(0.12, clock), mode='realtime').summary()
+    early = episode(seq, EarlyOracle(0.12, clock), mode='realtime').summary()
     assert early['processed'] == late['processed']        # busy just as long
     assert early['aae_deg'] < late['aae_deg']              # but it steers sooner
 
@@ -223,31 +244,31 @@ class AskingOracle(OraclePointer):
     """The oracle, taking ``delay`` s and then asking whether its frame is late (as the
     model asks before its optimiser step)."""
 
-    def __init__(self, delay: float):
+    def __init__(self, delay: float, clock: ComputeClock):
         super().__init__()
-        self.delay, self.answers = delay, []
+        self.delay, self.clock, self.answers = delay, clock, []
 
     def locate(self, view) -> Pointing:
-        time.sleep(self.delay)
+        self.clock.spend(self.delay)
         self.answers.append(None if view.late is None else view.late())
         return super().locate(view)
 
 
 @pytest.mark.parametrize('delay, late', [(0.0, False), (0.15, True)])
 def test_realtime_tells_a_pointer_its_frame_is_late_once_the_next_is_captured(
-        tmp_path, delay, late):
+        tmp_path, clock, delay, late):
     seq = data.load_sequence(make_walker(tmp_path, n=8))
-    real = AskingOracle(delay)
+    real = AskingOracle(delay, clock)
     episode(seq, real, mode='realtime')
     assert real.answers and set(real.answers) == {late}    # a frame every 100 ms
-    lock = AskingOracle(delay)
+    lock = AskingOracle(delay, clock)
     episode(seq, lock)
     assert set(lock.answers) == {None}                      # lockstep: never late
 
 
-def test_realtime_scores_the_pointing_of_frames_taken_from_the_queue_too(tmp_path):
+def test_realtime_scores_the_pointing_of_frames_taken_from_the_queue_too(tmp_path, clock):
     seq = data.load_sequence(make_walker(tmp_path, fps=20.0))
-    run = episode(seq, SlowOracle(0.12), mode='realtime')
+    run = episode(seq, SlowOracle(0.12, clock), mode='realtime')
     pointed = [r for r in run.records if math.isfinite(r.pointing_deg)]
     # every frame it processed, the ones taken from the queue too, is scored and counted
     assert len(pointed) == len(run.compute_s) == sum(r.processed for r in run.records)
