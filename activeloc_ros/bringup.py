@@ -766,7 +766,7 @@ def summary(monitor: Monitor, elapsed: float, reason: str, codes: dict, recorder
     span = (monitor.maps[-1] - monitor.maps[0]) if len(monitor.maps) > 1 else 0.0
     map_rate = (len(monitor.maps) - 1) / span if span > 0 else 0.0
     lines = [f'summary: stopped after {elapsed:.1f} s ({reason})',
-             f'  frames published {len(monitor.frames)}, surprise maps {len(monitor.maps)} '
+             f'  camera frames heard {len(monitor.frames)}, surprise maps {len(monitor.maps)} '
              f'({map_rate:.1f} maps/s), commands {len(monitor.commands)}',
              (f'  simulated time {monitor.sim_time:.2f} s (lockstep: every frame processed, '
               'commands at their frame time)' if monitor.lockstep
