@@ -137,9 +137,8 @@ def test_controller_commands_stay_inside_limits_and_speed(events, variant, deriv
     ctl.set_intrinsics(Intrinsics(600.0, 600.0, 319.5, 239.5, 640, 480))
     now, commands = 0.0, []
     for kind, *args in events:
-        if not commands:  # measured joints before the first command move the start; the
-            # first command may lead that pose by a frame, at most watchdog_timeout
-            start, t0 = ctl.guard.last_deg, ctl.guard.last_t - config.watchdog_timeout
+        if not commands:  # measured joints before the first command move the start
+            start, t0 = ctl.guard.last_deg, ctl.guard.last_t
         if kind == 'location':
             u, v, peak, capture_dt, dt = args
             now += dt if math.isfinite(dt) else 0.0

@@ -48,9 +48,9 @@ class ControllerConfig:
         the error). One map then decides no saccade alone: a surprise one frame shows and the
         next does not (a passer-by's step, the model's first guesses) moves nothing, at the
         cost of one frame's delay on every saccade. And a saccade once decided runs to its
-        end: a move the camera has not begun yet (its command just sent, or one the servos'
-        speed held back) is not replaced by the next location, as a camera that has begun
-        to move is not. 0: act on every location (the paper).
+        end: a move the servos' speed has not let start yet (a command at the instant of the
+        last joint state, as in lockstep) is not replaced by the next location, as a camera
+        that has begun to move is not. 0: act on every location (the paper).
     """
 
     pd: PDConfig = field(default_factory=PDConfig)
@@ -198,16 +198,8 @@ class ReactiveController:
     as the servos go in the time since the previous command) goes on with every location
     it ignores (a moving camera's frames above all; reason ``'continue'``) until it is
     done or a new target replaces it. Without this a saccade stopped after one frame's
-    worth of motion and waited out the settle gate before it went on.
-
-    The first command has no command before it: it may move as far from the arm's measured
-    pose as the servos go in the time since that pose or in one frame period (the gap
-    between the last two frames' stamps, at most ``watchdog_timeout``), whichever is
-    longer: as if the pose had been commanded one frame earlier, so that, like every later
-    command, it leads the arm by a frame's worth of motion. Otherwise a first
-    command made at the instant of the last joint state (lockstep, no compute time) would
-    move nothing and the next frame's location would decide the first saccade instead.
-    Before a second frame nothing is known of the period: no lead.
+    worth of motion and waited out the settle gate before it went on (the first command
+    of a run moves nothing at all).
     """
 
     def __init__(self, config: ControllerConfig, *, start_deg: Sequence[float] | None = None,
@@ -224,8 +216,6 @@ class ReactiveController:
         self.ignored: dict[str, int] = {}
         self.commands = 0
         self._last_capture = -math.inf
-        self._last_frame = -math.inf        # the newest capture stamp heard of
-        self._frame_period = 0.0            # the gap between the last two, s
         self._last_accept = -math.inf
         self._holding = False
         self._goal: tuple[float, ...] | None = None   # a target the guard cut short
@@ -292,10 +282,6 @@ class ReactiveController:
         was accepted for ``watchdog_timeout``, else None. So the watchdog runs on every
         frame, whichever driver calls: the node's timer only adds the case of no frames.
         """
-        if math.isfinite(t_capture) and t_capture > self._last_frame:
-            if self._last_frame > -math.inf:
-                self._frame_period = t_capture - self._last_frame
-            self._last_frame = t_capture
         intr = self.intrinsics
         problem = location_problem(u, v, t_capture, t_now, intrinsics=intr, peak=peak,
                                    min_peak=self.config.min_peak,
@@ -353,10 +339,6 @@ class ReactiveController:
 
     def _emit(self, target: Sequence[float], t_now: float, reason: str,
               stamp: float | None) -> Command:
-        if (self.commands == 0 and self._frame_period > 0
-                and t_now >= self.guard.last_t):        # the class docstring: a lead
-            lead = min(self._frame_period, self.config.watchdog_timeout)
-            self.guard.reset(self.guard.last_deg, min(self.guard.last_t, t_now - lead))
         joints = self.guard.limit(target, t_now)
         short = max(abs(a - b) for a, b in zip(target, joints)) > 0.05
         self._goal = tuple(target) if short and reason in ('track', 'continue') else None
