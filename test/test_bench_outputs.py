@@ -85,6 +85,13 @@ def test_time_plots_leave_gaps_for_unscored_frames(tmp_path):
     assert [p.name for p in time_plots(result, tmp_path)] == ['time_s.png']
 
 
+# `python -m activeloc_ros.bench` with Ctrl-C raising KeyboardInterrupt, as on a terminal, even
+# when the suite runs with SIGINT ignored (a background job), which Python would pass on
+CTRL_C_AS_ON_A_TERMINAL = (
+    'import runpy, signal; signal.signal(signal.SIGINT, signal.default_int_handler); '
+    "runpy.run_module('activeloc_ros.bench', run_name='__main__', alter_sys=True)")
+
+
 @pytest.mark.parametrize('jobs', [1, 2])
 def test_ctrl_c_keeps_the_previous_results(tmp_path, jobs):
     root = tmp_path / 'data'
@@ -98,7 +105,7 @@ def test_ctrl_c_keeps_the_previous_results(tmp_path, jobs):
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(content)
     proc = subprocess.Popen(
-        [sys.executable, '-m', 'activeloc_ros.bench', 'screen', '--data', str(root),
+        [sys.executable, '-c', CTRL_C_AS_ON_A_TERMINAL, 'screen', '--data', str(root),
          '--methods', 'oracle', '--jobs', str(jobs), '--out', str(out),
          '--screen', 'width=320', 'height=240', '--camera-fps', '0'],
         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
