@@ -340,6 +340,28 @@ def test_adaptive_rule_boosts_the_rate_after_a_surprise():
     assert model.step(surprise).lr == pytest.approx(1e-3)
 
 
+@pytest.mark.parametrize('bfloat16, state_grad', [
+    (False, False), (True, False), (False, True), (True, True)])
+def test_the_gate_product_gives_the_linear_layers_values_and_gradients(bfloat16, state_grad):
+    torch.manual_seed(0)
+    cell = nn.Linear(24, 32)
+    x0, h0 = torch.randn(5, 16), torch.randn(5, 8)
+    got = []
+    for split in (False, True):
+        cell.zero_grad()
+        x, h = x0.clone().requires_grad_(), h0.clone().requires_grad_(state_grad)
+        with torch.autocast('cpu', dtype=torch.bfloat16, enabled=bfloat16):
+            gates = (P.GateProduct.apply(x, h, cell.weight, cell.bias) if split
+                     else cell(torch.cat([x, h], dim=1)))          # (5, 32)
+        (gates.float().sigmoid() * torch.arange(32.0)).square().mean().backward()
+        got.append([gates, x.grad, h.grad, cell.weight.grad, cell.bias.grad])
+    for linear, split in zip(*got):
+        if linear is None:
+            assert split is None and not state_grad
+        else:
+            assert split.dtype == linear.dtype and torch.equal(split, linear)
+
+
 @pytest.mark.parametrize('kind, at_rest', [
     ('abs_sigmoid', 0.0), ('sigmoid', 0.5), ('raw', 0.0), ('none', 1.0)])
 def test_motion_weights(kind, at_rest):
