@@ -4,7 +4,8 @@ Reading uses the `mcap` library directly, so both a rosbag2 folder (metadata.yam
 and a bare .mcap file work; writing uses `rosbags`, which writes the rosbag2 metadata that
 `ros2 bag info` and `rosbags` read back. No ROS install is needed for any of it.
 A bag whose writer died (killed, disk full) has no index and no metadata.yaml; `reindex`
-keeps its complete chunks and writes both, as `ros2 bag reindex` does.
+keeps its complete chunks and writes both, as `ros2 bag reindex` does, and moves the bytes
+of the chunk the writer left unfinished to `<file>.incomplete` beside the bag.
 
     python -m activeloc_ros.bag info PATH
     python -m activeloc_ros.bag reindex PATH
@@ -455,6 +456,20 @@ def _append_index(file: Path, scan: McapScan, info_yaml: str) -> None:
         os.fsync(stream.fileno())
 
 
+def _keep_tail(file: Path, start: int) -> Path:
+    """Copy the bytes of `file` from `start` on, which `reindex` cuts off, to a file beside
+    it (not read as part of the bag), so that nothing the writer left is lost."""
+    tail = file.with_name(file.name + '.incomplete')
+    tmp = file.with_name(tail.name + '.tmp')
+    with open(file, 'rb') as src, open(tmp, 'wb') as dst:
+        src.seek(start)
+        shutil.copyfileobj(src, dst)
+        dst.flush()
+        os.fsync(dst.fileno())
+    tmp.replace(tail)
+    return tail
+
+
 def _indexed(file: Path) -> bool:
     """Whether `file` ends in a summary and footer that a reader can use."""
     try:
@@ -473,7 +488,8 @@ class ReindexReport:
 
 def reindex(path: Path) -> ReindexReport:
     """Make a bag readable again after its writer died: each .mcap file without an index is
-    cut back to its last complete chunk and indexed; metadata.yaml is written anew.
+    cut back to its last complete chunk and indexed; metadata.yaml is written anew. The
+    bytes cut off go to `<file>.incomplete` beside it.
 
     Like `ros2 bag reindex`, it works in place. Raises SourceError if `path` holds no
     MCAP file, OSError if a file cannot be rewritten.
@@ -489,9 +505,13 @@ def reindex(path: Path) -> ReindexReport:
         else:
             dropped = file.stat().st_size - scan.keep_bytes
             lines.append(f'{file.name}: no index; kept {len(scan.chunks)} complete chunks, '
-                         f'{count} messages'
-                         + (f'; dropped {dropped} bytes of an incomplete record'
-                            if dropped else ''))
+                         f'{count} messages')
+            if dropped:
+                what = f'{file.name}: the {dropped} bytes after them, an incomplete record,'
+                try:
+                    lines.append(f'{what} moved to {_keep_tail(file, scan.keep_bytes).name}')
+                except OSError as exc:      # a full disk: the readable bag comes first
+                    lines.append(f'{what} dropped: they could not be kept ({exc})')
             info = _bag_info_yaml([(file, scan)])
             _append_index(file, scan, yaml.safe_dump(info, sort_keys=False).strip())
         files.append((file, scan))
@@ -603,7 +623,7 @@ def main(argv: list[str] | None = None) -> int:
     fix = sub.add_parser(
         'reindex', help='make a bag whose recording was cut off (killed, disk full) readable: '
         'keep every complete chunk, write the index and metadata.yaml (in place, like '
-        '`ros2 bag reindex`)')
+        '`ros2 bag reindex`); the unfinished chunk\'s bytes go to <file>.incomplete')
     fix.add_argument('path', type=Path, help='rosbag2 folder or .mcap file')
     sample = sub.add_parser('make-sample', help='(re)make the bundled sample bag')
     sample.add_argument('--video', type=Path,

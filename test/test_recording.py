@@ -68,11 +68,17 @@ def test_reindex_recovers_every_complete_chunk_of_a_killed_recording(tmp_path, c
     killed.mkdir()
     footer = data[-8 - 29:-8]                 # opcode, length, summary_start, ...
     data_end = int.from_bytes(footer[9:17], 'little') - 13     # the DataEnd record
-    (killed / 'killed.mcap').write_bytes(data[:int(min(cut * len(data), data_end))])
+    left = data[:int(min(cut * len(data), data_end))]
+    (killed / 'killed.mcap').write_bytes(left)
     with pytest.raises(Exception):
         message_count(killed)
     report = reindex(killed)
     assert (killed / 'metadata.yaml').is_file()
+    # nothing the writer left is lost: the bytes cut off the bag are kept beside it
+    tail = killed / 'killed.mcap.incomplete'
+    cut_off = tail.read_bytes() if tail.exists() else b''
+    assert (killed / 'killed.mcap').read_bytes()[:len(left) - len(cut_off)] + cut_off == left
+    assert cut_off or cut == 1.0
     recovered = message_count(killed)
     assert recovered == report.messages
     assert recovered >= int(cut * 45) - 12     # at most the chunk being written is lost
