@@ -1,6 +1,8 @@
 """`SurpriseModel.learn` hands the map over before its optimiser step, and `Pipeline`
 (observing the next frame while learning from this one) gives exactly what
 `SurpriseModel.step` gives, frame by frame; a failure surfaces in the caller."""
+import threading
+
 import numpy as np
 import pytest
 import torch
@@ -59,6 +61,27 @@ def test_a_malformed_frame_is_refused_and_the_pipeline_goes_on():
     pipeline.submit(clip(2)[1], tag='b')
     pipeline.close()
     assert got == ['a', 'b']
+
+
+def test_busy_while_an_observed_frame_waits_for_the_learner():
+    """What the perception node asks before it takes a camera frame."""
+    learning, release = threading.Event(), threading.Event()
+
+    def hold(result, tag):
+        learning.set()
+        assert release.wait(30)
+
+    pipeline = Pipeline(make(), hold)
+    frames = clip(2)
+    pipeline.submit(frames[0], tag=0)
+    assert learning.wait(30)                 # the learner has frame 0 in hand
+    assert not pipeline.busy()
+    pipeline.submit(frames[1], tag=1)        # observed, it waits for the learner
+    assert pipeline.busy()
+    release.set()
+    assert pipeline.drain(timeout=60)
+    assert not pipeline.busy()
+    pipeline.close()
 
 
 def test_a_failure_while_learning_is_raised_in_the_callers_thread():

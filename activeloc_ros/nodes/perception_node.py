@@ -183,6 +183,8 @@ class PerceptionNode(Node):
 
     def on_image(self, msg: Image) -> None:
         self.stats.frame_received()
+        if self._pipeline_busy():
+            return
         try:
             rgb = image_to_rgb(msg.encoding, msg.height, msg.width, msg.step, msg.data,
                                max_pixels=self.params['max_image_pixels'])
@@ -193,6 +195,8 @@ class PerceptionNode(Node):
 
     def on_compressed(self, msg: CompressedImage) -> None:
         self.stats.frame_received()
+        if self._pipeline_busy():
+            return
         try:
             rgb = decode_compressed(msg.format, msg.data,
                                     max_pixels=self.params['max_image_pixels'])
@@ -200,6 +204,13 @@ class PerceptionNode(Node):
             self._skip(exc)
             return
         self.process(msg.header, rgb)
+
+    def _pipeline_busy(self) -> bool:
+        """With the pipeline, whether a frame already waits for the learner. A frame taken
+        now would wait a whole learning step after it was encoded, so it is left, as depth 1
+        leaves the frames that arrive while one is in hand, and a newer one is taken once the
+        learner has the waiting frame."""
+        return self.pipeline is not None and self.pipeline.busy()
 
     def process(self, header, rgb) -> None:
         started = time.monotonic()

@@ -63,6 +63,12 @@ class Pipeline:
             except queue.Full:
                 self._check()
 
+    def busy(self) -> bool:
+        """Whether an observed frame already waits for the learner: a frame submitted now
+        would wait for a whole learning step, so a camera's caller had better skip it and
+        take a newer one once the learner is free."""
+        return self._waiting.full()
+
     def drain(self, timeout: float | None = None) -> bool:
         """Wait until every submitted frame has been learnt; False on timeout or failure."""
         with self._changed:
