@@ -34,7 +34,7 @@ from mcap.stream_reader import get_chunk_data_stream
 import numpy as np
 
 from activeloc_ros.errors import ActivelocError, SourceError
-from activeloc_ros.paths import file_sha256
+from activeloc_ros.paths import file_sha256, write_atomic
 
 IMAGE_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage')
 CAMERA_INFO_TYPE = 'sensor_msgs/msg/CameraInfo'
@@ -460,13 +460,11 @@ def _keep_tail(file: Path, start: int) -> Path:
     """Copy the bytes of `file` from `start` on, which `reindex` cuts off, to a file beside
     it (not read as part of the bag), so that nothing the writer left is lost."""
     tail = file.with_name(file.name + '.incomplete')
-    tmp = file.with_name(tail.name + '.tmp')
-    with open(file, 'rb') as src, open(tmp, 'wb') as dst:
-        src.seek(start)
-        shutil.copyfileobj(src, dst)
-        dst.flush()
-        os.fsync(dst.fileno())
-    tmp.replace(tail)
+    with open(file, 'rb') as stream:           # at most the chunk being written
+        stream.seek(start)
+        write_atomic(tail, stream.read())
+    with open(tail, 'rb') as stream:           # on disk before the bag is cut back
+        os.fsync(stream.fileno())
     return tail
 
 
