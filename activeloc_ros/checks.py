@@ -41,8 +41,12 @@ def at_least(lo: float) -> Range:
 
 
 def above(lo: float) -> Check:
+    """``value > lo`` for a finite value: an infinite timeout or rate would never act
+    (a watchdog that never fires) or overflow where it is used (``Event.wait``)."""
     def check(value):
-        return None if value > lo else f'must be > {lo}, got {value}'
+        if math.isfinite(value) and value > lo:
+            return None
+        return f'must be a finite number > {lo}, got {value}'
     return check
 
 

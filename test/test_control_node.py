@@ -257,7 +257,7 @@ def test_gains_and_limits_set_at_run_time_apply_to_the_next_command(graph):
     ({'pan_limit_deg': 500.0}, 'out of range'),
     ({'kp': math.nan}, 'out of range'),
     ({'kp': 'fast'}, 'Wrong parameter type'),
-    ({'watchdog_timeout': 0.0}, "'watchdog_timeout' must be > 0"),
+    ({'watchdog_timeout': 0.0}, "'watchdog_timeout' must be a finite number > 0"),
     ({'min_peak': math.nan}, 'min_peak must not be NaN'),
 ])
 def test_a_run_time_change_that_would_not_apply_is_refused_with_the_reason(graph, values,

@@ -175,6 +175,23 @@ def test_rclpy_enforces_the_descriptor_ranges(context):
         node.destroy_node()
 
 
+@pytest.mark.parametrize('node, name', [('arm', 'stop_timeout'), ('arm', 'silence_timeout'),
+                                        ('camera', 'rate'), ('controller', 'watchdog_timeout')])
+def test_an_open_ended_parameter_refuses_infinity(context, node, name):
+    """A positive parameter without an upper bound still needs a finite value: an infinite
+    silence timeout never notices a hung Arduino, an infinite stop timeout overflows the wait."""
+    from rclpy.parameter import Parameter
+    made = node_class(node)(context=context, cli_args=params_args(node))
+    try:
+        before = made.get_parameter(name).value
+        for value in (math.inf, math.nan, 0.0):
+            result = made.set_parameters([Parameter(name, value=value)])[0]
+            assert not result.successful and 'finite' in result.reason, (name, value)
+        assert made.get_parameter(name).value == before
+    finally:
+        made.destroy_node()
+
+
 @pytest.mark.parametrize('node_name', NODE_NAMES)
 def test_every_node_prints_its_help_instead_of_starting(node_name, capsys):
     import importlib
