@@ -148,6 +148,7 @@ def test_params_file_problems_is_a_pure_function():
     ('controller', 'step_delay_ms', 'integer_range', (10, 30)),
     ('controller', 'kp', 'floating_point_range', (0.0, None)),
     ('arm', 'state_rate', 'floating_point_range', (1.0, 500.0)),
+    ('camera', 'hfov_deg', 'floating_point_range', (1.0, 170.0)),
     ('arm', 'step_delay_ms', 'integer_range', (10, 30)),
     ('perception', 'overlay_alpha', 'floating_point_range', (0.0, 1.0))])
 def test_ranges_are_in_the_descriptors(context, node, name, kind, bounds):

@@ -31,7 +31,7 @@ PARAMS = [
     Param('encoding', 'rgb8', 'encoding of published images', one_of('rgb8', 'bgr8')),
     Param('frame_id', 'camera_color_optical_frame', 'frame_id of published headers'),
     Param('hfov_deg', 69.4, 'horizontal field of view used for CameraInfo when the source '
-          'has no intrinsics of its own (default: RealSense D435 colour)', positive),
+          'has no intrinsics of its own (default: RealSense D435 colour)', in_range(1.0, 170.0)),
     Param('restamp', True, 'stamp frames with the time they are published (a live camera) '
           'instead of their recorded time'),
     Param('folder_fps', 10.0, 'frame rate of folder:PATH sources', positive, read_only=True),
