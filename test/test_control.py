@@ -240,6 +240,17 @@ def test_locations_need_intrinsics_and_increasing_stamps():
     assert ctl.ignored == {'no camera info': 1, 'out of order': 2}
 
 
+def test_a_stamp_from_the_future_is_ignored_and_does_not_block_later_locations():
+    """A frame stamped far ahead of the controller's clock (a wrong clock on the camera's
+    host) is turned away; accepted, every later, truthful stamp would look out of order."""
+    ctl = make_controller(settle_time=0.0)
+    assert ctl.on_location(600.0, 240.0, 1e9, 1.1) is None
+    assert ctl.ignored == {'stamp in the future': 1}
+    cmd = ctl.on_location(600.0, 240.0, 1.2, 1.3)
+    assert cmd is not None and cmd.reason == 'track'
+    assert ctl.on_location(320.0, 240.0, 1.9, 1.6) is not None   # within the clock skew
+
+
 def test_aim_limits_bound_the_camera_not_the_joints_beyond():
     """A far action turns the camera only as far as the workspace allows, either way."""
     ctl = make_controller(pan_limit_deg=12.0, tilt_limit_deg=5.0)

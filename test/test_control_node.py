@@ -233,22 +233,21 @@ def aim(executor, probe, u, stamp):
 def test_gains_and_limits_set_at_run_time_apply_to_the_next_command(graph):
     executor, controller, probe = graph('settle_time:=0.0')
     left = CX - 100.0  # the action 100 px left of the centre: turn left, base up
-    t = probe.now()
-    first = aim(executor, probe, left, t)
+    first = aim(executor, probe, left, probe.now())
     assert first > HOME_DEG[0]
 
     [result] = set_remote(executor, probe, pan_limit_deg=0.0)
     assert result.successful, result.reason
     bases = [first]
     while bases[-1] > HOME_DEG[0] + 1e-6 and len(bases) < 2000:  # the guard ramps at 50 deg/s
-        bases.append(aim(executor, probe, left, t + 0.001 * len(bases)))
+        bases.append(aim(executor, probe, left, probe.now()))
     assert bases[-1] == pytest.approx(HOME_DEG[0])  # back home, never further left
     assert all(b <= a + 1e-9 for a, b in zip(bases, bases[1:]))
 
     assert all(r.successful for r in set_remote(executor, probe, pan_limit_deg=180.0, kp=0.0))
-    assert aim(executor, probe, left, t + 5.0) == pytest.approx(HOME_DEG[0])  # kp 0: still
+    assert aim(executor, probe, left, probe.now()) == pytest.approx(HOME_DEG[0])  # kp 0: still
     assert set_remote(executor, probe, kp=1.0)[0].successful
-    assert aim(executor, probe, left, t + 5.5) > HOME_DEG[0]
+    assert aim(executor, probe, left, probe.now()) > HOME_DEG[0]
 
 
 @pytest.mark.parametrize('values, reason', [

@@ -168,17 +168,23 @@ class LatencyStats:
         return {'n': len(self._values), 'p50': self.percentile(50), 'p95': self.percentile(95)}
 
 
+FUTURE_SLACK = 1.0   # s a capture stamp may run ahead of the controller's clock (skew)
+
+
 def location_problem(u: float, v: float, t_capture: float, t_now: float, *,
                      intrinsics: Intrinsics | None, peak: float | None, min_peak: float,
                      last_capture: float) -> str | None:
     """Why a controller (the arm's or a base's) must not act on an action location, or None:
-    no intrinsics, a bad time, a pixel outside the image, a map without information (its
-    peak below ``min_peak``; None for a pointer without a map), a stamp not after the last
-    accepted one."""
+    no intrinsics, a bad time, a stamp more than `FUTURE_SLACK` ahead of now (accepted, it
+    would turn every later location away as out of order), a pixel outside the image, a
+    map without information (its peak below ``min_peak``; None for a pointer without a
+    map), a stamp not after the last accepted one."""
     if intrinsics is None:
         return 'no camera info'
     if not (math.isfinite(t_capture) and math.isfinite(t_now)):
         return 'bad time'
+    if t_capture > t_now + FUTURE_SLACK:
+        return 'stamp in the future'
     if not intrinsics.contains(u, v):
         return 'outside image'
     if peak is not None and not (math.isfinite(peak) and peak >= min_peak):
