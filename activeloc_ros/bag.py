@@ -12,6 +12,7 @@ of the chunk the writer left unfinished to `<file>.incomplete` beside the bag.
     python -m activeloc_ros.bag make-sample [--video FILE] [--out DIR]
 """
 import argparse
+from collections import Counter
 from dataclasses import dataclass, field
 from io import BytesIO
 import os
@@ -140,8 +141,14 @@ def choose_image_topic(facts: BagFacts, topic: str = '') -> TopicFacts:
     return images[0]
 
 
-def read_messages(path: Path, topics: list[str]) -> Iterator[tuple[str, str, int, object]]:
-    """Yield (topic, msgtype, log_time_ns, message) in log-time order, deserialised."""
+def read_messages(path: Path, topics: list[str], *, skipped: Counter | None = None
+                  ) -> Iterator[tuple[str, str, int, object]]:
+    """Yield (topic, msgtype, log_time_ns, message) in log-time order, deserialised.
+
+    A message whose bytes do not deserialise is counted in ``skipped`` (by reason) and the
+    rest is read on; without ``skipped`` it ends the reading with a SourceError naming the
+    message."""
+    from rosbags.serde import SerdeError
     store = _typestore()
     for file in mcap_files(path):
         try:
@@ -149,7 +156,15 @@ def read_messages(path: Path, topics: list[str]) -> Iterator[tuple[str, str, int
                 reader = make_reader(stream)
                 for schema, channel, message in reader.iter_messages(topics=topics,
                                                                      log_time_order=True):
-                    msg = store.deserialize_cdr(message.data, schema.name)
+                    try:
+                        msg = store.deserialize_cdr(message.data, schema.name)
+                    except SerdeError as exc:
+                        reason = f'corrupt {schema.name} message on {channel.topic}'
+                        if skipped is None:
+                            raise SourceError(f'{file}: {reason} at log time '
+                                              f'{message.log_time / 1e9:.3f} s: {exc}') from exc
+                        skipped[reason] += 1
+                        continue
                     yield channel.topic, schema.name, message.log_time, msg
         except READER_ERRORS as exc:
             raise SourceError(

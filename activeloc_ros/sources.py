@@ -98,7 +98,8 @@ class BagSource(Source):
 
     def rewind(self) -> None:
         self.close()
-        self._messages: Iterator = bag.read_messages(self.path, [self.topic.name])
+        self._messages: Iterator = bag.read_messages(self.path, [self.topic.name],
+                                                     skipped=self.skipped)
         self._index = 0
 
     def close(self) -> None:

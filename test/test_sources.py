@@ -128,6 +128,30 @@ def test_missing_empty_and_corrupt_bags(tmp_path):
         bag.bag_facts(tmp_path / 'folder')
 
 
+def test_a_corrupt_message_is_skipped_and_named_and_the_rest_is_read(tmp_path):
+    """A message whose bytes do not deserialise (a cut payload) costs that frame alone."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+    with open(SAMPLE / 'vtest.mcap', 'rb') as stream:
+        schema, channel, message = next(make_reader(stream).iter_messages())
+    path = tmp_path / 'one_bad.mcap'
+    with open(path, 'wb') as out:
+        writer = Writer(out)
+        writer.start('ros2', '')
+        schema_id = writer.register_schema(schema.name, schema.encoding, schema.data)
+        channel_id = writer.register_channel(channel.topic, channel.message_encoding, schema_id)
+        for i, data in enumerate([message.data, message.data[:40], message.data]):
+            writer.add_message(channel_id, log_time=10**9 + i * 10**8, data=data,
+                               publish_time=10**9 + i * 10**8)
+        writer.finish()
+    source = open_source(f'bag:{path}', clock=lambda: 0.0)
+    assert [source.read().stamp, source.read().stamp, source.read()] == [1.0, 1.2, None]
+    assert dict(source.skipped) == {
+        f'corrupt {schema.name} message on {channel.topic}': 1}
+    with pytest.raises(SourceError, match=r'one_bad.mcap: corrupt .* at log time 1.100 s'):
+        list(bag.read_messages(path, [channel.topic]))
+
+
 def test_video_and_folder_sources(tmp_path):
     folder = tmp_path / 'frames'
     folder.mkdir()
