@@ -223,6 +223,25 @@ def test_bad_sim_settings(context, extra, message):
         SimNode(context=context, cli_args=params_args('sim', *extra))
 
 
+def test_rate_is_refused_at_run_time_in_lockstep_and_applied_in_real_time(context):
+    """In lockstep the graph sets the pace, so a new rate would be reported as set and
+    never used: it is refused with the reason; in real time it is applied."""
+    from rclpy.parameter import Parameter
+    from activeloc_ros.nodes.sim_node import SimNode
+    for extra, accepted in ((['lockstep:=true', SIM], False), ([], True)):
+        node = SimNode(context=context, cli_args=params_args('sim', *extra,
+                                                            'wait_for_subscriber:=0.0'))
+        try:
+            [result] = node.set_parameters([Parameter('rate', value=2.0)])
+            assert result.successful is accepted, extra
+            if accepted:
+                assert node.pacer.rate == 2.0
+            else:
+                assert 'in lockstep' in result.reason and node.get_parameter('rate').value == 1.0
+        finally:
+            node.destroy_node()
+
+
 class Probe:
     """Records the camera's poses, images' stamps, the arm's states and the controller's
     answers; sends joint commands."""

@@ -44,6 +44,14 @@ def time_ns(index: int, fps: float) -> int:
     return round(frame_time(index, fps) * 1e9)
 
 
+def moot_in_lockstep(values: dict, changed: set) -> str | None:
+    """A world node's run-time check: ``rate`` paces real time only, so in lockstep a change
+    would be reported as set and never used."""
+    if values['lockstep'] and 'rate' in changed:
+        return 'rate would have no effect: in lockstep the graph sets the pace, not the clock'
+    return None
+
+
 class Lockstep:
     """The sim's lockstep state machine: fed the graph's messages, told what to do next.
 

@@ -29,7 +29,7 @@ from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.data import FrameTruth
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.images import rgb_to_image_fields
-from activeloc_ros.nodes.lockstep import Lockstep, time_ns
+from activeloc_ros.nodes.lockstep import Lockstep, moot_in_lockstep, time_ns
 from activeloc_ros.nodes.messages import (
     arm_joints_deg, camera_info, joint_state, stamp_ns, time_from_ns)
 from activeloc_ros.nodes.ros_params import declare, frame_due, node_help, Param, run
@@ -79,7 +79,7 @@ class SimNode(Node):
         super().__init__('sim', **kwargs)
         self.params = declare(self, PARAMS, cli_args=kwargs.get('cli_args'),
                               use_global_arguments=kwargs.get('use_global_arguments', True),
-                              on_change=self.on_parameters)
+                              check_all=moot_in_lockstep, on_change=self.on_parameters)
         p = self.params
         self.sim_time = self.get_parameter('use_sim_time').value
         if p['lockstep'] and not self.sim_time:

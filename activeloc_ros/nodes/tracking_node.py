@@ -33,7 +33,7 @@ from activeloc_ros.checks import in_range, non_negative, one_of, positive
 from activeloc_ros.control.base import Twist as BaseTwist
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.images import rgb_to_image_fields
-from activeloc_ros.nodes.lockstep import ANSWER, Lockstep
+from activeloc_ros.nodes.lockstep import ANSWER, Lockstep, moot_in_lockstep
 from activeloc_ros.nodes.messages import camera_info, stamp_ns, time_from_ns
 from activeloc_ros.nodes.ros_params import declare, frame_due, node_help, Param, run
 from activeloc_ros.tracking.scenes import SCENES
@@ -73,7 +73,7 @@ class TrackingNode(Node):
         super().__init__('tracking', **kwargs)
         self.params = declare(self, PARAMS, cli_args=kwargs.get('cli_args'),
                               use_global_arguments=kwargs.get('use_global_arguments', True),
-                              on_change=self.on_parameters)
+                              check_all=moot_in_lockstep, on_change=self.on_parameters)
         p = self.params
         self.sim_time = self.get_parameter('use_sim_time').value
         if p['lockstep'] != self.sim_time:
