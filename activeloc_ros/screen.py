@@ -87,7 +87,7 @@ class VirtualScreen:
         self.mapping = mapping if mapping is not None else ArmMapping()
         c = config
         self.size = (c.width, c.height)
-        fx = (c.width / 2.0) / math.tan(math.radians(c.hfov_deg) / 2.0)
+        fx = metrics.focal_from_fov(c.width, c.hfov_deg)
         self.K = np.array([[fx, 0.0, (c.width - 1) / 2.0],
                            [0.0, fx, (c.height - 1) / 2.0], [0.0, 0.0, 1.0]])
         self.K_inv = np.linalg.inv(self.K)

@@ -24,7 +24,7 @@ from typing import Callable, Iterator
 import cv2
 import numpy as np
 
-from activeloc_ros import bag, data
+from activeloc_ros import bag, data, metrics
 from activeloc_ros.errors import DataError, FrameError, SourceError
 from activeloc_ros.images import decode_compressed, image_to_rgb
 from activeloc_ros.paths import share_path
@@ -46,7 +46,7 @@ class Frame:
 
 def pinhole_matrix(width: int, height: int, hfov_deg: float) -> np.ndarray:
     """K of an ideal pinhole camera with square pixels and the given horizontal field of view."""
-    fx = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+    fx = metrics.focal_from_fov(width, hfov_deg)
     return np.array([[fx, 0.0, width / 2.0], [0.0, fx, height / 2.0], [0.0, 0.0, 1.0]])
 
 

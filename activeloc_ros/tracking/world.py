@@ -27,6 +27,7 @@ import tempfile
 
 import numpy as np
 
+from activeloc_ros import metrics
 from activeloc_ros.control.base import BaseConfig, BaseController, Twist
 from activeloc_ros.control.geometry import Intrinsics
 from activeloc_ros.errors import ConfigError
@@ -81,7 +82,7 @@ class TrackingConfig:
 
     @property
     def intrinsics(self) -> Intrinsics:
-        f = self.width / 2 / math.tan(math.radians(self.hfov_deg) / 2)
+        f = metrics.focal_from_fov(self.width, self.hfov_deg)
         return Intrinsics(f, f, (self.width - 1) / 2, (self.height - 1) / 2,
                           self.width, self.height)
 
