@@ -52,3 +52,5 @@ def above(lo: float) -> Check:
 
 positive = above(0)
 non_negative = at_least(0)
+# a camera's horizontal field of view, degrees: near 180 a pinhole's focal length goes to 0
+field_of_view = in_range(1.0, 170.0)

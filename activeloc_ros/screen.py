@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from activeloc_ros import metrics
-from activeloc_ros.checks import above, in_range, non_negative
+from activeloc_ros.checks import above, field_of_view, in_range, non_negative
 from activeloc_ros.control.braccio import ArmMapping
 from activeloc_ros.control.geometry import Intrinsics
 from activeloc_ros.errors import ConfigError
@@ -62,7 +62,7 @@ class ScreenConfig:
             'screen_width_m': above(0.0), 'screen_height_m': above(0.0),
             'view_fraction': in_range(0.01, 1.0), 'distance_m': non_negative,
             'width': in_range(16, 8192), 'height': in_range(16, 8192),
-            'hfov_deg': in_range(1.0, 170.0), 'wall_grey': in_range(0, 255),
+            'hfov_deg': field_of_view, 'wall_grey': in_range(0, 255),
         }
         for name, check in checks.items():
             problem = check(getattr(self, name))

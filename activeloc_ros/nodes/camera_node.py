@@ -14,7 +14,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 
-from activeloc_ros.checks import in_range, non_negative, one_of, positive
+from activeloc_ros.checks import field_of_view, in_range, non_negative, one_of, positive
 from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.nodes.messages import camera_info, time_from_s
 from activeloc_ros.nodes.ros_params import declare, frame_due, node_help, Param, run
@@ -31,7 +31,7 @@ PARAMS = [
     Param('encoding', 'rgb8', 'encoding of published images', one_of('rgb8', 'bgr8')),
     Param('frame_id', 'camera_color_optical_frame', 'frame_id of published headers'),
     Param('hfov_deg', 69.4, 'horizontal field of view used for CameraInfo when the source '
-          'has no intrinsics of its own (default: RealSense D435 colour)', in_range(1.0, 170.0)),
+          'has no intrinsics of its own (default: RealSense D435 colour)', field_of_view),
     Param('restamp', True, 'stamp frames with the time they are published (a live camera) '
           'instead of their recorded time'),
     Param('folder_fps', 10.0, 'frame rate of folder:PATH sources', positive, read_only=True),
