@@ -196,3 +196,14 @@ def test_sim_arm_follows_one_degree_per_step_delay():
     assert arm.advance(0.1)[0] == HOME_DEG[0] + 5
     assert arm.advance(0.05)[0] == HOME_DEG[0] + 5  # time never runs backwards
     assert arm.advance(0.5)[0] == HOME_DEG[0] + 10 and not arm.moving
+
+
+def test_sim_arm_restarted_at_an_earlier_time_goes_on_moving():
+    arm = SimArm(HOME_DEG, 100.0, step_delay_ms=20)
+    arm.command([HOME_DEG[0] + 10] + list(HOME_DEG[1:]), 100.0)
+    assert arm.advance(100.1)[0] == HOME_DEG[0] + 5
+    assert arm.advance(1.1)[0] == HOME_DEG[0] + 5       # the clock ran back: frozen
+    arm.restart(1.0)
+    assert arm.advance(1.1)[0] == HOME_DEG[0] + 10 and not arm.moving
+    with pytest.raises(ConfigError, match='finite'):
+        arm.restart(math.nan)

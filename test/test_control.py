@@ -285,6 +285,23 @@ def test_watchdog_holds_once_then_stays_silent():
     assert all(ctl.tick(t) is None for t in (0.6, 1.0, 5.0, 50.0))  # no drift afterwards
 
 
+def test_after_the_clock_runs_back_a_restart_tracks_again_from_the_last_command():
+    """A bag replayed in a loop sends the clock back to its start. Without `restart` every
+    later location is out of order and the guard allows no motion until the clock is back."""
+    ctl = make_controller(settle_time=0.3)
+    ctl.observe(HOME_DEG, 100.0)
+    first = ctl.on_location(pixel_for(10.0), D435.cy, 100.0, 100.2)
+    assert first.joints_deg[0] == pytest.approx(HOME_DEG[0] + 10.0)
+    stale = ctl.on_location(pixel_for(5.0), D435.cy, 1.0, 1.0)
+    assert stale is None and ctl.ignored == {'out of order': 1}
+    ctl.restart(1.0)
+    assert ctl.state == 'idle'
+    ctl.observe(first.joints_deg, 1.0)
+    turn = ctl.on_location(pixel_for(5.0), D435.cy, 1.0, 1.1)
+    assert turn.reason == 'track' and turn.joints_deg[0] > first.joints_deg[0]
+    assert turn.joints_deg[0] - first.joints_deg[0] <= 50.0 * 0.1 + 1e-6  # servo speed kept
+
+
 def test_ignored_locations_run_the_watchdog_as_silence_does():
     """A stream of locations it ignores (weak maps) is no location: after the timeout the
     answer to one is the hold, once, in every driver (the benchmark has no timer)."""

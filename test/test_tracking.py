@@ -68,6 +68,19 @@ def test_base_ignores_a_map_without_information_and_stops_when_locations_stop():
     assert ctl.tick(2.6) is None                            # once
 
 
+def test_after_the_clock_runs_back_a_restart_lets_the_watchdog_stop_the_base():
+    ctl = controller()
+    ctl.observe((0.0, 0.0, 0.0), 100.0)
+    assert ctl.on_location(300, 120, 100.0, 100.0).twist != Twist()
+    assert ctl.tick(1.0) is None and ctl.tick(5.0) is None    # before: moving for good
+    ctl.restart(1.0)
+    assert ctl.tick(2.0) is None
+    stop = ctl.tick(3.1)                                    # 2 s without a location
+    assert stop.twist == Twist() and stop.reason == 'hold'
+    ctl.observe((0.0, 0.0, 0.0), 3.2)
+    assert ctl.on_location(300, 120, 3.2, 3.2).twist.turn < 0  # in order again
+
+
 def test_ground_rule_reads_the_distance_from_the_box_foot():
     ctl = controller()
     cfg = ctl.config

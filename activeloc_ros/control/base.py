@@ -154,6 +154,15 @@ class BaseController:
         if len(pose) == 3 and all(math.isfinite(v) for v in pose) and math.isfinite(t):
             self.yaw = [s for s in self.yaw if s[0] > t - 2.0] + [(t, float(pose[2]))]
 
+    def restart(self, t_now: float) -> None:
+        """The clock ran back to ``t_now``: forget the odometry's times, the last location and
+        the PD's derivative (as `ReactiveController.restart`). Without this the watchdog
+        never stopped a moving base until the clock was back where it was."""
+        self.yaw = []
+        self.pd.reset()
+        self._last_capture = -math.inf
+        self._last_accept = t_now
+
     def _heading_at(self, t: float) -> float:
         before = [h for s, h in self.yaw if s <= t]
         return before[-1] if before else (self.yaw[0][1] if self.yaw else 0.0)

@@ -248,6 +248,19 @@ class ReactiveController:
         if self.history.add(t, pose) and self.commands == 0:
             self.guard.reset(pose, t)
 
+    def restart(self, t_now: float) -> None:
+        """The clock ran back to ``t_now`` (a bag replayed in a loop with its ``/clock``):
+        forget every time it holds (the arm's recent poses, the last location, the PD's
+        derivative, a move in progress) and go on from the last command, as after a start.
+        Without this every location is out of order, and the guard allows no motion, until
+        the clock is back where it was."""
+        self.guard.reset(self.guard.last_deg, t_now)
+        self.history = PoseHistory(self.history.horizon)
+        self.pd.reset()
+        self._last_capture = self._last_accept = -math.inf
+        self._holding = False
+        self._goal = self._seen = None
+
     def _ignore(self, reason: str, t_now: float) -> Command | None:
         """Count an ignored location; the watchdog's answer to it, else the rest of a move
         the servos' speed cut short."""

@@ -57,5 +57,13 @@ class SimArm:
             q + max(-n, min(n, goal - q)) for q, goal in zip(self.joints, self.target))
         return self.joints
 
+    def restart(self, t: float) -> None:
+        """The clock ran back to ``t``: the servos go on stepping from there (else they stood
+        still until the clock was back where it was)."""
+        if not math.isfinite(t):
+            raise ConfigError(f'restart time must be finite, got {t}')
+        self.t = self._t0 = float(t)
+        self._steps = 0
+
     def as_dict(self) -> dict[str, int]:
         return dict(zip(JOINT_NAMES, self.joints))
