@@ -7,6 +7,7 @@ import pytest
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import CameraInfo, JointState
 
 from activeloc_ros.control import HOME_DEG, JOINT_NAMES, within_limits
@@ -190,6 +191,58 @@ def test_closed_loop_with_the_sim_arm_centres_a_still_action(context):
                     and abs(math.degrees(tilt - action_tilt)) < 2.5)
 
         assert spin_until(executor, centred, 15.0), (pose, [degrees(c) for c in probe.commands])
+        assert all(within_limits(degrees(c), tol=1e-6) for c in probe.commands)
+    finally:
+        executor.shutdown()
+        for node in (controller, arm, probe.node):
+            node.destroy_node()
+
+
+def test_a_clock_that_runs_back_restarts_the_controller_and_the_arm(context):
+    """A bag replayed in a loop with its /clock sends simulated time back to its start. The
+    controller and the simulated arm go on from there; before, the arm stood still, and
+    every location was out of order, until the clock was back where it had been."""
+    from activeloc_ros.nodes.arm_node import ArmNode
+    from activeloc_ros.nodes.controller_node import ControllerNode
+    sim_time = 'use_sim_time:=true'
+    controller = ControllerNode(context=context, cli_args=params_args('controller', sim_time))
+    arm = ArmNode(context=context, cli_args=params_args('arm', 'backend:=sim', sim_time))
+    probe = Probe(context)
+    clock = probe.node.create_publisher(ClockMsg, '/clock', 10)
+    now = {'t': 100.0}
+    states = []
+
+    def tick():        # the bag's clock: 50 ms a tick
+        now['t'] += 0.05
+        clock.publish(ClockMsg(clock=Time(sec=int(now['t']),
+                                          nanosec=int(now['t'] % 1 * 1e9))))
+
+    def look():        # the action is always 10 deg left of the camera's last pose
+        if states:
+            stamp = states[-1].header.stamp
+            probe.send_location(CX - FX * math.tan(math.radians(10.0)), CY,
+                                stamp.sec + stamp.nanosec * 1e-9)
+
+    probe.node.create_subscription(JointState, 'joint_states', states.append, 10)
+    probe.node.create_timer(0.02, tick)
+    probe.node.create_timer(0.1, look)
+    probe.node.create_timer(0.5, lambda: probe.info.publish(camera_info()))
+    executor = SingleThreadedExecutor(context=context)
+    for node in (controller, arm, probe.node):
+        executor.add_node(node)
+
+    def pan_after(t: float) -> float | None:     # the newest pan stamped in [t, t + 50 s)
+        after = [degrees(m)[0] for m in states
+                 if 0 <= m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 - t < 50]
+        return after[-1] if after else None
+
+    try:
+        assert spin_until(executor, lambda: (pan_after(100.0) or 0.0) > HOME_DEG[0] + 5, 20.0)
+        before = pan_after(100.0)
+        now['t'] = 1.0
+        assert spin_until(executor, lambda: (pan_after(1.0) or 0.0) > before + 5
+                          and (pan_after(1.0) or 0.0) < 180, 20.0), (before, pan_after(1.0))
+        assert controller.core.ignored.get('out of order', 0) <= 2   # in flight at the jump
         assert all(within_limits(degrees(c), tol=1e-6) for c in probe.commands)
     finally:
         executor.shutdown()

@@ -30,6 +30,7 @@ from activeloc_ros.control import (
     clamp_to_limits, HOME_DEG, JOINT_NAMES, pose_problem, SimArm)
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.serial_link import BraccioLink
+from activeloc_ros.nodes.clock import Rewinds
 from activeloc_ros.nodes.messages import joint_state
 from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
 
@@ -117,6 +118,7 @@ class ArmNode(Node):
         self._last_link_event = ''
         self._lock = threading.RLock()  # stop_on_purpose may come from another thread
         self._stopped = threading.Event()
+        self.rewinds = Rewinds(self)
 
         if self.backend == 'sim':
             self.sim = SimArm(values['sim_start_deg'], self._now(),
@@ -158,6 +160,20 @@ class ArmNode(Node):
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
+    def _restart_after_rewind(self) -> None:
+        """Under the lock: if the clock ran back, the simulated servos and the stop's ramp
+        go on from the new time (the serial link keeps its own, monotonic, time)."""
+        jump = self.rewinds.take()
+        if jump is None:
+            return
+        now = self._now()
+        if self.sim is not None:
+            self.sim.restart(now)
+        self._stop_t = min(self._stop_t, now)
+        self.get_logger().warning(
+            f'the clock ran back {-jump:.1f} s, to {now:.2f} s (a bag replayed in a loop?): '
+            'the arm goes on from there')
+
     # -- the arm, whichever back end -------------------------------------------------------
 
     def joints(self) -> tuple[float, ...] | None:
@@ -185,6 +201,7 @@ class ArmNode(Node):
 
     def on_command(self, msg: JointState) -> None:
         with self._lock:
+            self._restart_after_rewind()
             self._on_command(msg)
 
     def _on_command(self, msg: JointState) -> None:
@@ -267,6 +284,7 @@ class ArmNode(Node):
 
     def on_state_timer(self) -> None:
         with self._lock:
+            self._restart_after_rewind()
             if self.stopping:
                 self._stop_step()
                 if self.stop_done():
@@ -324,6 +342,7 @@ class ArmNode(Node):
             do the work and this call only waits.
         """
         with self._lock:
+            self._restart_after_rewind()
             self.begin_stop()
         timeout = self.values['stop_timeout']
         try:

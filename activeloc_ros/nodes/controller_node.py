@@ -11,7 +11,9 @@ location gets an answer a lockstep simulation can wait for. The maths is
 
 On simulated time (lockstep) a location waits for the arm's state at its stamp, which may
 reach this node after it: the controller then knows the camera's pose at capture, as
-``closed_loop``'s controller does.
+``closed_loop``'s controller does. A simulated clock that runs back (a bag replayed in a
+loop with its ``/clock``; `nodes.clock`) restarts the core from its last command, with a
+warning.
 
 With ``actuator: base`` (`control.base`) it subscribes ``odom`` (nav_msgs/Odometry) in place
 of ``joint_states`` and ``action_region`` (the box of what is at the location, for the
@@ -37,6 +39,7 @@ from activeloc_ros.control.base import ACTION_SETS, BaseConfig, BaseController, 
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.pd import DERIVATIVE_MODES
 from activeloc_ros.errors import ConfigError
+from activeloc_ros.nodes.clock import Rewinds
 from activeloc_ros.nodes.messages import (
     arm_joints_deg, joint_state, region_box, stamp_ns, stamp_s)
 from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
@@ -195,6 +198,7 @@ class ControllerNode(Node):
         self.stopped = False
         self._early: PointStamped | None = None   # simulated time: ahead of the arm's state
         self._regions: dict[int, tuple] = {}       # base: stamp (ns) -> box of the location
+        self.rewinds = Rewinds(self)
 
         # Best effort hears any publisher (a camera driver's sensor QoS); in simulated time
         # (lockstep, our own reliable publishers) every location and arm state counts.
@@ -248,6 +252,19 @@ class ControllerNode(Node):
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
+    def _restart_after_rewind(self) -> None:
+        """Under the lock: if the clock ran back, the core starts over at the new time."""
+        jump = self.rewinds.take()
+        if jump is None:
+            return
+        now = self._now()
+        self.core.restart(now)
+        self._early = None
+        self._regions.clear()
+        self.get_logger().warning(
+            f'the clock ran back {-jump:.1f} s, to {now:.2f} s (a bag replayed in a loop?): '
+            'the controller starts over from its last command')
+
     # -- inputs ----------------------------------------------------------------------------
 
     def on_camera_info(self, msg: CameraInfo) -> None:
@@ -273,6 +290,7 @@ class ControllerNode(Node):
 
     def on_joint_states(self, msg: JointState) -> None:
         with self._lock:
+            self._restart_after_rewind()
             self._on_joint_states(msg)
 
     def _on_joint_states(self, msg: JointState) -> None:
@@ -292,6 +310,7 @@ class ControllerNode(Node):
         q = msg.pose.pose.orientation
         heading = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
         with self._lock:
+            self._restart_after_rewind()
             self.core.observe((msg.pose.pose.position.x, msg.pose.pose.position.y, heading),
                               stamp_s(msg.header.stamp) or self._now())
             self._answer_early()
@@ -301,6 +320,7 @@ class ControllerNode(Node):
         box = region_box(msg)
         if box is not None:
             with self._lock:
+                self._restart_after_rewind()
                 self._regions[stamp_ns(msg.header.stamp)] = box
                 while len(self._regions) > 20:
                     del self._regions[min(self._regions)]
@@ -315,6 +335,7 @@ class ControllerNode(Node):
         with self._lock:
             if self.stopped:
                 return
+            self._restart_after_rewind()
             if self.sim_time and not self._pose_known(msg):
                 if self._early is not None:   # its state never came: answer it as it is
                     self._answer(self._early)
@@ -354,6 +375,7 @@ class ControllerNode(Node):
 
     def on_watchdog(self) -> None:
         with self._lock:
+            self._restart_after_rewind()
             command = None if self.stopped else self.core.tick(self._now())
             if command is not None:
                 self._publish(command, self.get_clock().now().to_msg())
@@ -374,6 +396,7 @@ class ControllerNode(Node):
         no more (safe to call while another thread spins the node)."""
         with self._lock:
             self.stopped = True
+            self._restart_after_rewind()
             command = self.core.hold(self._now())
             self._publish(command, self.get_clock().now().to_msg())
         self.publisher.wait_for_all_acked(Duration(seconds=0.5))
