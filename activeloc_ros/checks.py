@@ -4,11 +4,18 @@ ROS-free, so the model's config and the nodes' ROS parameters share them. A clos
 is a ``Range``, which ``ros_params`` also writes into the parameter's descriptor (so
 ``ros2 param describe`` shows it and rclpy enforces it): one declaration, two uses.
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 import math
+import numbers
 from typing import Any, Callable
 
 Check = Callable[[Any], 'str | None']
+
+
+def is_number(value) -> bool:
+    """A real number (int or float, not bool): what the range checks can compare; a string
+    such as 'nan' or '1.5' from a command line is not one."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True)
@@ -19,6 +26,8 @@ class Range:
     hi: float
 
     def __call__(self, value) -> 'str | None':
+        if not is_number(value):
+            return f'must be a number, got {value!r}'
         if math.isfinite(value) and self.lo <= value <= self.hi:
             return None
         if math.isinf(self.hi):
@@ -44,6 +53,8 @@ def above(lo: float) -> Check:
     """``value > lo`` for a finite value: an infinite timeout or rate would never act
     (a watchdog that never fires) or overflow where it is used (``Event.wait``)."""
     def check(value):
+        if not is_number(value):
+            return f'must be a number, got {value!r}'
         if math.isfinite(value) and value > lo:
             return None
         return f'must be a finite number > {lo}, got {value}'
@@ -54,3 +65,23 @@ positive = above(0)
 non_negative = at_least(0)
 # a camera's horizontal field of view, degrees: near 180 a pinhole's focal length goes to 0
 field_of_view = in_range(1.0, 170.0)
+
+
+def field_types(config) -> 'str | None':
+    """The first field of a config dataclass whose value is not of its annotated kind
+    (float: a number, int: a whole number, bool, str), or None. Values from a command line
+    (``--set hidden=abc``, ``width=100.5``) are caught here with the field's name, not by a
+    TypeError where they are first used."""
+    for f in fields(config):
+        value, kind = getattr(config, f.name), f.type
+        kind = getattr(kind, '__name__', kind)     # a class, or its name as a string
+        if kind == 'float' and not is_number(value):
+            return f'{f.name} must be a number, got {value!r}'
+        if kind == 'int' and not (isinstance(value, numbers.Integral)
+                                  and not isinstance(value, bool)):
+            return f'{f.name} must be a whole number, got {value!r}'
+        if kind == 'bool' and not isinstance(value, bool):
+            return f'{f.name} must be true or false, got {value!r}'
+        if kind == 'str' and not isinstance(value, str):
+            return f'{f.name} must be a string, got {value!r}'
+    return None

@@ -33,6 +33,7 @@ import statistics
 from activeloc_ros.control.geometry import angular_error, Intrinsics
 from activeloc_ros.control.pd import PDConfig, PDController
 from activeloc_ros.control.reactive import LatencyStats, location_problem
+from activeloc_ros.checks import field_types
 from activeloc_ros.errors import ConfigError
 
 FORWARD_RULES = ('ground', 'size', 'constant', 'none')
@@ -81,6 +82,9 @@ class BaseConfig:
     discrete_turn_deg_s: float = 30.0
 
     def __post_init__(self):
+        problem = field_types(self)
+        if problem:
+            raise ConfigError(problem)
         for name in ('step', 'max_speed', 'max_turn_deg_s', 'watchdog_timeout',
                      'discrete_speed', 'discrete_turn_deg_s', 'camera_height', 'distance'):
             value = getattr(self, name)

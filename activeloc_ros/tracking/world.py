@@ -30,6 +30,7 @@ import numpy as np
 from activeloc_ros import metrics
 from activeloc_ros.control.base import BaseConfig, BaseController, Twist
 from activeloc_ros.control.geometry import Intrinsics
+from activeloc_ros.checks import field_types, is_number
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.tracking import reward as rewards
 from activeloc_ros.tracking.people import Behaviour, Clip, Person, Walker
@@ -66,6 +67,12 @@ class TrackingConfig:
     min_visible_px: int = 20
 
     def __post_init__(self):
+        problem = field_types(self)
+        if problem:
+            raise ConfigError(problem)
+        speeds = self.target_speed
+        if not (isinstance(speeds, tuple) and len(speeds) == 2 and all(map(is_number, speeds))):
+            raise ConfigError(f'target_speed must be two numbers (low, high), got {speeds!r}')
         if self.target not in TARGETS:
             raise ConfigError(f'target must be one of {list(TARGETS)}, got {self.target!r}')
         if not (0 < self.hfov_deg < 170):
@@ -76,7 +83,7 @@ class TrackingConfig:
             raise ConfigError('max_steps and lost_steps must be >= 1')
         if not (self.step > 0 and self.start_distance > 0):
             raise ConfigError('step and start_distance must be > 0')
-        low, high = self.target_speed
+        low, high = speeds
         if not 0 < low <= high:
             raise ConfigError(f'target_speed must be 0 < low <= high, got {self.target_speed}')
 
