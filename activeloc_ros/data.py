@@ -198,6 +198,9 @@ def load_sequence(path: str | os.PathLike) -> Sequence:
                     camera=str(meta['camera']), truth=tuple(truth), meta=meta)
 
 
+NO_SUCH_SEQUENCE = 'no such sequence'
+
+
 def load_sequences(root: str | os.PathLike, *, names: list[str] | None = None,
                    cameras: list[str] | None = None,
                    ) -> tuple[list[Sequence], list[tuple[str, str]]]:
@@ -210,7 +213,7 @@ def load_sequences(root: str | os.PathLike, *, names: list[str] | None = None,
     skipped: list[tuple[str, str]] = []
     if names:
         known = {p.name: p for p in paths}
-        skipped += [(n, 'no such sequence') for n in names if n not in known]
+        skipped += [(n, NO_SUCH_SEQUENCE) for n in names if n not in known]
         paths = [known[n] for n in names if n in known]
     loaded = []
     for p in paths:

@@ -103,6 +103,10 @@ def test_cli_errors(tmp_path, capsys):
     assert passive.main(['--data', str(tmp_path / 'absent'), '--no-model']) == 2
     assert 'not a directory' in capsys.readouterr().err
     assert passive.main(['--data', str(tmp_path), '--no-model']) == 1
+    for bad, message in ((['--seed', '-1'], '--seed'), (['--warmup', '-5'], '--warmup'),
+                         (['--pan', '5', '--pan-step', 'inf'], '--pan-step')):
+        assert passive.main(['--data', str(tmp_path), '--no-model', *bad]) == 2
+        assert message in capsys.readouterr().err
     with pytest.raises(SystemExit) as exc:
         passive.main(['--help'])
     assert exc.value.code == 0

@@ -351,12 +351,25 @@ def test_cli_table_csv_plots_videos_and_bad_sequences(tmp_path, capsys):
     (['--max-frames', '0'], '--max-frames'),
     (['--latency', '-5'], '--latency'),
     (['--latency', '30', '--mode', 'realtime'], '--latency is for --mode lockstep'),
+    (['--seed', '-1'], '--seed must be in [0, 4294967295], got -1'),
+    (['--control', 'kp=nan'], 'kp must be finite'),       # nan: a number, not the string
+    (['--control', 'kp=fast'], "kp must be a number, got 'fast'"),
+    (['--screen', 'width=100.5'], 'width must be a whole number'),
+    (['--sequences', 'walker', 'walkr'], "no sequence 'walkr' under"),
 ])
 def test_cli_refuses_bad_options(tmp_path, capsys, args, message):
     make_walker(tmp_path, n=3)
     assert bench.main(['--data', str(tmp_path), '--quiet', '--no-video', '--out',
                        str(tmp_path / 'out'), '--methods', 'centre', *args]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_an_out_folder_that_cannot_be_made_fails_before_the_run(tmp_path, capsys):
+    make_walker(tmp_path, n=3)
+    (tmp_path / 'afile').write_text('kept')
+    assert bench.main(['--data', str(tmp_path), '--quiet', '--no-video', '--methods', 'centre',
+                       '--out', str(tmp_path / 'afile')]) == 2
+    assert '--out' in capsys.readouterr().err and (tmp_path / 'afile').read_text() == 'kept'
 
 
 def test_control_kp_and_kd_set_the_gains_of_every_method_but_a_pd_variant():

@@ -214,11 +214,22 @@ def test_bench_tracking_smoke(tmp_path, capsys):
     (['--methods', 'teleport'], 'unknown method'),
     (['--world', 'target=hide'], 'target must be'),
     (['--control', 'warp=9'], 'unknown --control'),
+    (['--control', 'kp=fast'], "kp must be a number, got 'fast'"),
+    (['--seed', '-1'], '--seed must be in'),
+    (['--seed', str(2**32)], '--seed must be in'),
+    (['--world', 'max_steps=1.5'], 'max_steps must be a whole number'),
+    (['--world', 'target_speed=[1]'], 'target_speed must be two numbers'),
 ])
 def test_bench_tracking_refuses_bad_input(tmp_path, capsys, argv, message):
     assert bench.main(argv + ['--out', str(tmp_path)]) == 2
     assert message in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
+
+
+def test_bench_tracking_refuses_an_out_path_under_a_file_before_any_episode(tmp_path, capsys):
+    (tmp_path / 'afile').write_text('kept')
+    assert bench.main(['--methods', 'random', '--out', str(tmp_path / 'afile' / 'x')]) == 2
+    assert '--out' in capsys.readouterr().err and (tmp_path / 'afile').read_text() == 'kept'
 
 
 def test_bringup_runs_the_tracking_world_in_lockstep_as_the_benchmark_does(tmp_path, graph_env):

@@ -2,6 +2,7 @@
 import argparse
 import json
 import multiprocessing
+import os
 from pathlib import Path
 import signal
 from typing import Callable, Iterator
@@ -25,7 +26,33 @@ def key_values(items: list[str], option: str) -> dict:
         try:
             out[key] = json.loads(value)
         except json.JSONDecodeError:
-            out[key] = value
+            try:
+                out[key] = float(value)     # nan, inf: numbers JSON does not spell
+            except ValueError:
+                out[key] = value
+    return out
+
+
+SEED_MAX = 2**32 - 1    # numpy's and torch's seeds
+
+
+def check_seed(seed: int) -> None:
+    """--seed: numpy and torch take 0 .. 2**32 - 1; raises ConfigError before any run."""
+    if not 0 <= seed <= SEED_MAX:
+        raise ConfigError(f'--seed must be in [0, {SEED_MAX}], got {seed}')
+
+
+def output_dir(path: str | Path, option: str = '--out') -> Path:
+    """The folder a benchmark writes to, made now: a path that is a file or cannot be made
+    fails before the run, not after it with the results lost. Raises ConfigError."""
+    out = Path(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f'{option} {path}: cannot make that folder: '
+                          f'{exc.strerror or exc}') from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise ConfigError(f'{option} {path}: cannot write there')
     return out
 
 
@@ -46,6 +73,9 @@ def load_selected(args: argparse.Namespace
     root = data.resolve_data_root(args.data)
     sequences, skipped = data.load_sequences(root, names=names(args.sequences),
                                              cameras=args.camera)
+    unknown = [name for name, reason in skipped if reason == data.NO_SUCH_SEQUENCE]
+    if unknown:     # a typo stops the run at once, not after an hour without that sequence
+        raise ConfigError(f'no sequence {", ".join(map(repr, unknown))} under {root}')
     sequences.sort(key=lambda s: (data.KIND_ORDER[s.camera_kind], s.name))
     return root, sequences, skipped
 

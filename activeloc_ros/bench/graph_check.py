@@ -17,6 +17,7 @@ import tempfile
 
 import yaml
 
+from activeloc_ros.bench import output_dir
 from activeloc_ros.bench.pointers import ModelPointer
 from activeloc_ros.bringup import camera_screen, node_values
 from activeloc_ros.closed_loop import run_episode, screen_world
@@ -110,10 +111,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.frames < 1:
         print('error: --frames must be >= 1', file=sys.stderr)
         return 2
+    if not (math.isfinite(args.tolerance_deg) and args.tolerance_deg >= 0):
+        print('error: --tolerance-deg must be a finite number >= 0', file=sys.stderr)
+        return 2
     with tempfile.TemporaryDirectory(prefix='graph-check-') as tmp:
-        work = args.keep or Path(tmp)
-        work.mkdir(parents=True, exist_ok=True)
         try:
+            work = output_dir(args.keep, '--keep') if args.keep else Path(tmp)
             graph = graph_poses(args.scene, args.frames, work / 'run')
             bench = bench_poses(args.scene, args.frames)
         except ActivelocError as err:

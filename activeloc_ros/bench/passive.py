@@ -29,7 +29,6 @@ import argparse
 from dataclasses import dataclass, field
 import json
 import math
-from pathlib import Path
 import sys
 import time
 from typing import Iterator
@@ -39,11 +38,12 @@ import cv2
 import numpy as np
 
 from activeloc_ros import data, metrics
-from activeloc_ros.bench import add_sequence_options, key_values, load_selected, names
+from activeloc_ros.bench import (
+    add_sequence_options, check_seed, key_values, load_selected, names, output_dir)
 from activeloc_ros.bench.pointers import (
     ABLATIONS as MODEL_ROWS, FrameDiffPointer, ModelPointer)
 from activeloc_ros.closed_loop import Pointer, Pointing
-from activeloc_ros.errors import ActivelocError, DataError
+from activeloc_ros.errors import ActivelocError, ConfigError, DataError
 from activeloc_ros.paths import write_atomic
 from activeloc_ros.progress import Progress
 from activeloc_ros.world import frame_time, pixel_centre, View
@@ -138,8 +138,8 @@ class PanningCamera:
     def __init__(self, amplitude_deg: float, *, step_deg: float = 2.0, move: int = 4,
                  hold: int = 4) -> None:
         from activeloc_ros.screen import VirtualScreen
-        if not (amplitude_deg > 0 and step_deg > 0 and move >= 1 and hold >= 0):
-            raise ActivelocError('--pan and --pan-step must be > 0')
+        if not (0 < amplitude_deg < 90 and 0 < step_deg < 90 and move >= 1 and hold >= 0):
+            raise ActivelocError('--pan and --pan-step must be > 0 and < 90 degrees')
         self.screen = VirtualScreen()
         self.amplitude, self.step_deg, self.move, self.hold = amplitude_deg, step_deg, move, hold
 
@@ -460,9 +460,13 @@ def main(argv: list[str] | None = None) -> int:
         print('--max-frames must be >= 1', file=sys.stderr)
         return 2
     try:
+        check_seed(args.seed)
+        if args.warmup < 0:
+            raise ConfigError('--warmup must be >= 0')
         root, sequences, skipped = load_selected(args)
         methods = build_methods(args)
         camera = PanningCamera(args.pan, step_deg=args.pan_step) if args.pan else None
+        out = output_dir(args.out) if args.out else None
     except ActivelocError as err:
         print(f'error: {err}', file=sys.stderr)
         return 2
@@ -490,8 +494,7 @@ def main(argv: list[str] | None = None) -> int:
                               'settings': result['settings']}))
     else:
         print(table)
-    if args.out:
-        out = Path(args.out)
+    if out is not None:
         write_atomic(out / 'passive.json', json.dumps(result, indent=1) + '\n')
         write_atomic(out / 'passive.md', table + '\n')
     return 0

@@ -27,7 +27,8 @@ import numpy as np
 
 from activeloc_ros import data
 from activeloc_ros.bench import (
-    add_sequence_options, in_threads, key_values, load_selected, names, run_jobs)
+    add_sequence_options, check_seed, in_threads, key_values, load_selected, names, output_dir,
+    run_jobs)
 from activeloc_ros.bench.time_plots import time_plots
 from activeloc_ros.bench.video import (
     commit_video, discard_videos, H264Writer, temporary_path)
@@ -455,6 +456,7 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError('--latency must be >= 0 ms')
         if args.latency and args.mode != 'lockstep':
             raise ConfigError('--latency is for --mode lockstep: realtime measures its own')
+        check_seed(args.seed)
         methods = names(args.methods) or list(METHODS)
         for m in methods:
             if m not in METHODS:
@@ -467,6 +469,8 @@ def run(args: argparse.Namespace) -> int:
         if any(m in MODEL_METHODS for m in methods):
             ModelPointer('check', {'seed': args.seed, **settings})  # weights, settings: now
         root, sequences, skipped = load_selected(args)
+        if sequences:
+            out = output_dir(args.out)
     except ActivelocError as err:
         print(f'error: {err}', file=sys.stderr)
         return 2
@@ -475,7 +479,6 @@ def run(args: argparse.Namespace) -> int:
             print(f'skipped {name}: {reason}', file=sys.stderr)
         print(f'error: no usable sequence under {root}', file=sys.stderr)
         return 1
-    out = Path(args.out)
     if not args.quiet:
         rate = f'camera {args.camera_fps:g} Hz' if args.camera_fps else 'every scene frame'
         mode = f'{args.mode} + {args.latency:g} ms' if args.latency else args.mode

@@ -39,7 +39,8 @@ import traceback
 import cv2
 import numpy as np
 
-from activeloc_ros.bench import in_threads, key_values, names, run_jobs
+from activeloc_ros.bench import (
+    check_seed, in_threads, key_values, names, output_dir, run_jobs)
 from activeloc_ros.bench import screen
 from activeloc_ros.bench.screen import method_pd, MODEL_METHODS, PD_OPTIONS, TRACKER_METHODS
 from activeloc_ros.bench.video import (
@@ -488,6 +489,8 @@ def run(args: argparse.Namespace) -> int:
                 raise ConfigError(f'unknown method {m!r}; known: {", ".join(METHODS)}')
         if args.episodes < 1 or args.jobs < 1:
             raise ConfigError('--episodes and --jobs must be >= 1')
+        check_seed(args.seed)
+        check_seed(1000 * args.seed + args.episodes - 1)   # the last episode's own seed
         world = key_values(args.world, '--world')
         if 'target_speed' in world:
             world['target_speed'] = tuple(world['target_speed'])
@@ -500,10 +503,10 @@ def run(args: argparse.Namespace) -> int:
         settings = key_values(args.set, '--set')
         if any(m in MODEL_METHODS for m in methods):
             make_pointer('ours', settings, args.seed)    # weights, settings: now
+        out = output_dir(args.out)
     except (ActivelocError, TypeError) as err:
         print(f'error: {err}', file=sys.stderr)
         return 2
-    out = Path(args.out)
     # one thread per episode, whatever --jobs: the base's closed loop turns a different
     # rounding (two threads sum in another order) into another path after a few hundred steps
     threads = 1
