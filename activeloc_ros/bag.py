@@ -584,16 +584,54 @@ def fetch_sample_video(workdir: Path) -> Path:
     return video
 
 
+def replaceable(out: Path) -> bool:
+    """May `make_sample` replace ``out``? Only when it is absent or a rosbag2 folder: its
+    metadata.yaml and MCAP files, nothing else."""
+    if not out.exists():
+        return True
+    return out.is_dir() and (out / 'metadata.yaml').is_file() and all(
+        f.name == 'metadata.yaml' or f.suffix in ('.mcap', '.incomplete') for f in out.iterdir())
+
+
 def make_sample(video: Path, out: Path, *, frames: int, width: int, quality: int) -> BagFacts:
-    """Write `frames` frames of `video`, resized to `width`, as JPEG CompressedImage messages."""
+    """Write `frames` frames of `video`, resized to `width`, as JPEG CompressedImage messages.
+    ``out`` is replaced only if it is a bag (`replaceable`); anything else is refused."""
     import cv2
+    if frames < 1 or not 16 <= width <= 8192 or not 0 <= quality <= 100:
+        raise SourceError(f'need frames >= 1, width in 16..8192 and quality in 0..100, got '
+                          f'{frames}, {width} and {quality}')
+    if not replaceable(out):
+        raise SourceError(f'{out} exists and is not a bag: not replacing it')
     capture = cv2.VideoCapture(str(video))
     if not capture.isOpened():
         raise SourceError(f'cannot open video {video}')
     fps = capture.get(cv2.CAP_PROP_FPS) or 10.0
     tmp = out.with_name(out.name + '.partial')
     shutil.rmtree(tmp, ignore_errors=True)
-    writer = BagWriter(tmp)
+    try:
+        written = _write_sample(capture, BagWriter(tmp), frames=frames, width=width,
+                                quality=quality, fps=fps)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)    # no half-made bag left beside ``out``
+        raise
+    if written == 0:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise SourceError(f'no frame could be read from {video}')
+    shutil.rmtree(out, ignore_errors=True)
+    # rosbags names the storage file after the folder; keep that true after the rename.
+    for file in tmp.iterdir():
+        if file.name.startswith(tmp.name):
+            file.rename(tmp / file.name.replace(tmp.name, out.name, 1))
+    metadata = tmp / 'metadata.yaml'
+    metadata.write_text(metadata.read_text().replace(tmp.name, out.name))
+    tmp.rename(out)
+    return bag_facts(out)
+
+
+def _write_sample(capture, writer: BagWriter, *, frames: int, width: int, quality: int,
+                  fps: float) -> int:
+    """`make_sample`'s frames into ``writer``, which it closes; how many were written."""
+    import cv2
     store = writer.store
     Header = store.types['std_msgs/msg/Header']
     Time = store.types['builtin_interfaces/msg/Time']
@@ -613,18 +651,7 @@ def make_sample(video: Path, out: Path, *, frames: int, width: int, quality: int
         writer.write(SAMPLE_TOPIC, 'sensor_msgs/msg/CompressedImage', stamp, msg)
         written += 1
     writer.close()
-    if written == 0:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise SourceError(f'no frame could be read from {video}')
-    shutil.rmtree(out, ignore_errors=True)
-    # rosbags names the storage file after the folder; keep that true after the rename.
-    for file in tmp.iterdir():
-        if file.name.startswith(tmp.name):
-            file.rename(tmp / file.name.replace(tmp.name, out.name, 1))
-    metadata = tmp / 'metadata.yaml'
-    metadata.write_text(metadata.read_text().replace(tmp.name, out.name))
-    tmp.rename(out)
-    return bag_facts(out)
+    return written
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -663,7 +690,7 @@ def main(argv: list[str] | None = None) -> int:
                                 quality=args.quality)
         print(format_facts(facts))
         return 0
-    except SourceError as exc:
+    except (SourceError, RecordingError) as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
     except OSError as exc:

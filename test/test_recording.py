@@ -3,8 +3,11 @@ import errno
 import subprocess
 import sys
 
+import cv2
+import numpy as np
 import pytest
 
+from activeloc_ros import bag
 from activeloc_ros.bag import BagWriter, bag_facts, reindex, RecordingError
 from conftest import REPO
 
@@ -103,3 +106,25 @@ def test_reindex_refuses_what_is_not_a_bag(tmp_path):
                            str(tmp_path / 'x.mcap')], capture_output=True, text=True, cwd=REPO,
                           timeout=60)
     assert done.returncode == 1 and 'not an MCAP file' in done.stderr
+
+
+def test_make_sample_replaces_a_bag_but_never_another_folder(tmp_path, capsys):
+    video = tmp_path / 'clip.avi'
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*'MJPG'), 10.0, (64, 48))
+    for i in range(4):
+        writer.write(np.full((48, 64, 3), 40 * i, np.uint8))
+    writer.release()
+    out = tmp_path / 'sample'
+    args = ['make-sample', '--video', str(video), '--out', str(out), '--width', '32']
+    assert bag.main(args) == 0 and bag_facts(out).message_count == 4
+    assert bag.main(args + ['--frames', '2']) == 0 and bag_facts(out).message_count == 2
+    precious = tmp_path / 'precious'
+    precious.mkdir()
+    (precious / 'notes.txt').write_text('kept')
+    assert bag.main(['make-sample', '--video', str(video), '--out', str(precious)]) == 1
+    assert 'is not a bag' in capsys.readouterr().err
+    assert (precious / 'notes.txt').read_text() == 'kept'
+    assert bag.main(args + ['--width', '0']) == 1 and 'width' in capsys.readouterr().err
+    assert bag.main(['make-sample', '--video', str(video), '--out', '/proc/x/y']) == 1
+    assert capsys.readouterr().err.startswith('error:')
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['clip.avi', 'precious', 'sample']
