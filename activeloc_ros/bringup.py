@@ -249,6 +249,10 @@ CAMERA_FORMS = {'bag': 'bag:PATH', 'video': 'video:PATH', 'folder': 'folder:PATH
 
 def preflight(args) -> None:
     """Every check that can fail before a node starts, with a clear message."""
+    from activeloc_ros.nodes.ros_params import ros_args_problem
+    problem = args.ros_args and ros_args_problem(['bringup', '--ros-args', *args.ros_args])
+    if problem:
+        raise ConfigError(problem)
     if args.world:
         tracking_world(args)
         if args.camera != DEFAULT_CAMERA or args.arm != 'sim':
@@ -272,7 +276,10 @@ def preflight(args) -> None:
                 raise SourceError(f'{args.camera} holds no readable frame')
         finally:
             source.close()
-    elif kind not in ('device', 'realsense'):
+    elif kind == 'device':
+        from activeloc_ros.sources import device_index
+        device_index(target)
+    elif kind != 'realsense':
         raise ConfigError(f'unknown --camera {args.camera!r}')
     backend, _, port = args.arm.partition(':')
     if backend not in ('sim', 'serial') or (backend == 'serial') != bool(port):

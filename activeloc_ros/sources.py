@@ -316,6 +316,18 @@ def default_bag() -> Path:
     return share_path('bags/vtest')
 
 
+def device_index(arg: str) -> int:
+    """The N of ``device:N`` (empty: 0); raises SourceError unless it is a whole number >= 0
+    (OpenCV's capture crashes the process on a negative index)."""
+    try:
+        index = int(arg or 0)
+    except ValueError:
+        raise SourceError(f'device source needs a number >= 0, got {arg!r}') from None
+    if index < 0:
+        raise SourceError(f'device source needs a number >= 0, got {arg!r}')
+    return index
+
+
 def open_source(spec: str, *, clock, image_topic: str = '', folder_fps: float = 10.0,
                 realsense_size: tuple[int, int] = (640, 480), realsense_fps: int = 30
                 ) -> Source:
@@ -328,10 +340,7 @@ def open_source(spec: str, *, clock, image_topic: str = '', folder_fps: float = 
     if kind == 'folder' and arg:
         return FolderSource(Path(arg), fps=folder_fps)
     if kind == 'device':
-        try:
-            return DeviceSource(int(arg or 0), clock=clock)
-        except ValueError as exc:
-            raise SourceError(f'device source needs a number, got {arg!r}') from exc
+        return DeviceSource(device_index(arg), clock=clock)
     if kind == 'realsense':
         return RealSenseSource(width=realsense_size[0], height=realsense_size[1],
                                fps=realsense_fps, clock=clock)

@@ -265,6 +265,9 @@ def test_bringup_refuses_bad_input_before_any_node(tmp_path, graph_env, case, me
     (['--duration', 'nan'], {}, 'must be a finite number'),
     (['--record', '{file}/bag'], {}, 'is not a folder'),
     (['--log-dir', '{file}/logs'], {}, '--log-dir'),
+    (['--camera', 'device:-1'], {}, 'device source needs a number >= 0'),
+    (['--ros-args', '--garbage'], {}, "unknown ROS arguments ['--garbage'"),
+    (['--ros-args', '-p', 'kp:=nan', '--'], {}, "parameter 'kp' must be a number, got 'nan'"),
 ])
 def test_bringup_checks_every_input_before_starting_any_node(tmp_path, graph_env, options,
                                                              files, message):

@@ -194,6 +194,14 @@ def test_an_open_ended_parameter_refuses_infinity(context, node, name):
 
 
 @pytest.mark.parametrize('node_name', NODE_NAMES)
+def test_every_node_refuses_unknown_ros_arguments_with_a_message(node_name, capsys):
+    import importlib
+    module = importlib.import_module(f'activeloc_ros.nodes.{node_name}_node')
+    assert module.main([f'{node_name}_node', '--ros-args', '--garbage']) == 2
+    assert "unknown ROS arguments ['--garbage']" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('node_name', NODE_NAMES)
 def test_every_node_prints_its_help_instead_of_starting(node_name, capsys):
     import importlib
     module = importlib.import_module(f'activeloc_ros.nodes.{node_name}_node')

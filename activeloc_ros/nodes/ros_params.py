@@ -362,6 +362,20 @@ def lean_executor(context=None):
     return EventsExecutor(context=context)
 
 
+def ros_args_problem(args: list[str]) -> str | None:
+    """Why rcl refuses a command line's ROS arguments (an unknown flag, ``-p`` without a
+    rule), or None; rclpy raises it from ``init`` as a bare RuntimeError."""
+    context = rclpy.Context()
+    try:
+        rclpy.init(args=args, context=context)
+    except RuntimeError as exc:
+        if type(exc).__name__ == 'UnknownROSArgsError':
+            return f'unknown ROS arguments {exc}'
+        return f'bad ROS arguments: {exc}'
+    rclpy.try_shutdown(context=context)
+    return None
+
+
 def run(node_factory: Callable[..., Any], args=None, *,
         on_stop: Callable[[Any], None] | None = None,
         help_text: Callable[[], str] | None = None) -> int:
@@ -404,6 +418,10 @@ def run(node_factory: Callable[..., Any], args=None, *,
         signal.signal(signal.SIGINT, request_stop)
         signal.signal(signal.SIGTERM, request_stop)
     _process_args[:] = process_args
+    problem = ros_args_problem(process_args)
+    if problem:
+        print(f'error: {problem}', file=sys.stderr)
+        return 2
     rclpy.init(args=args, signal_handler_options=handler)
     node = executor = None
     try:
