@@ -7,6 +7,7 @@ is a ``Range``, which ``ros_params`` also writes into the parameter's descriptor
 from dataclasses import dataclass, fields
 import math
 import numbers
+import os
 from typing import Any, Callable
 
 Check = Callable[[Any], 'str | None']
@@ -59,6 +60,13 @@ def above(lo: float) -> Check:
             return None
         return f'must be a finite number > {lo}, got {value}'
     return check
+
+
+def file_or_empty(value) -> 'str | None':
+    """An optional path: empty, or a file that exists."""
+    if value == '' or os.path.isfile(value):
+        return None
+    return f'must be empty or an existing file, got {value!r}'
 
 
 positive = above(0)

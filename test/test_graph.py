@@ -268,6 +268,7 @@ def test_bringup_refuses_bad_input_before_any_node(tmp_path, graph_env, case, me
     (['--camera', 'device:-1'], {}, 'device source needs a number >= 0'),
     (['--ros-args', '--garbage'], {}, "unknown ROS arguments ['--garbage'"),
     (['--ros-args', '-p', 'kp:=nan', '--'], {}, "parameter 'kp' must be a number, got 'nan'"),
+    (['--ros-args', '-p', 'checkpoint:=/nonexistent', '--'], {}, "'checkpoint' must be empty or"),
 ])
 def test_bringup_checks_every_input_before_starting_any_node(tmp_path, graph_env, options,
                                                              files, message):

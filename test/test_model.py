@@ -13,7 +13,7 @@ import pytest
 import torch
 from torch import nn
 
-from activeloc_ros.errors import ConfigError, FrameError
+from activeloc_ros.errors import ConfigError, FrameError, WeightsError
 from activeloc_ros.perception import model as M, predictor as P
 from activeloc_ros.perception.config import PerceptionConfig
 from activeloc_ros.perception.features import fast_bfloat16
@@ -444,6 +444,17 @@ def test_a_checkpoint_from_before_encoder_pad_and_motion_period_loads_as_it_lear
     torch.save(ckpt, path)
     cfg = SurpriseModel.load(str(path)).cfg
     assert cfg.encoder_pad == 0 and cfg.motion_period == 0.0   # no border, one scale
+
+
+@pytest.mark.parametrize('content', [None, b'', b'random bytes', 'a folder'])
+def test_a_missing_or_corrupt_checkpoint_is_a_weights_error_naming_it(tmp_path, content):
+    path = tmp_path / 'model.pt'
+    if content == 'a folder':
+        path.mkdir()
+    elif content is not None:
+        path.write_bytes(content)
+    with pytest.raises(WeightsError, match='cannot load the checkpoint .*model.pt'):
+        SurpriseModel.load(str(path))
 
 
 # -- non-finite values -----------------------------------------------------------------------

@@ -35,7 +35,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Float32MultiArray, Header, MultiArrayDimension
 
 from activeloc_ros import metrics
-from activeloc_ros.checks import in_range, one_of, positive
+from activeloc_ros.checks import file_or_empty, in_range, one_of, positive
 from activeloc_ros.errors import FrameError
 from activeloc_ros.images import (decode_compressed, float_image_fields, image_to_rgb, overlay,
                                   rgb_to_image_fields)
@@ -68,7 +68,7 @@ NODE_PARAMS = [
     Param('diagnostics_period', 1.0, 'seconds between two /diagnostics messages', positive,
           read_only=True),
     Param('checkpoint', '', 'model checkpoint to start from (empty: fresh model)',
-          read_only=True),
+          file_or_empty, read_only=True),
     Param('pipeline', False, 'encode the next frame while learning from this one '
           '(perception.pipeline: the same maps; torch and the encoder get half the cores each '
           'unless num_threads is set). More maps/s from a camera faster than the model, '

@@ -78,6 +78,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from activeloc_ros.errors import WeightsError
 from activeloc_ros.perception import egomotion, motion
 from activeloc_ros.perception.config import PerceptionConfig
 from activeloc_ros.perception.features import Features, resolve_precision
@@ -509,7 +510,16 @@ class SurpriseModel:
 
     @classmethod
     def load(cls, path: str) -> 'SurpriseModel':
-        """Rebuild a saved model; it continues learning where `save` left it."""
+        """Rebuild a saved model; it continues learning where `save` left it. Raises
+        WeightsError for a file that is missing or not such a checkpoint."""
+        try:
+            return cls._load(path)
+        except Exception as exc:   # torch's unpickler meets a file of junk with any error
+            raise WeightsError(f'cannot load the checkpoint {path}: '
+                               f'{type(exc).__name__}: {exc}') from None
+
+    @classmethod
+    def _load(cls, path: str) -> 'SurpriseModel':
         from activeloc_ros.perception.encoders import build_encoder
         ckpt = torch.load(path, map_location='cpu', weights_only=True)
         # a checkpoint saved before encoder_pad (motion_period) existed was learned without
