@@ -69,6 +69,24 @@ def file_or_empty(value) -> 'str | None':
     return f'must be empty or an existing file, got {value!r}'
 
 
+def argument(check: Check, kind: type = float) -> Callable[[str], Any]:
+    """An argparse ``type`` that parses a command-line word as ``kind`` and applies
+    ``check``: ``--timeout nan`` or ``--count -1`` is refused with the check's message."""
+    import argparse
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f'not a {kind.__name__}: {text!r}') from None
+        problem = check(value)
+        if problem:
+            raise argparse.ArgumentTypeError(problem)
+        return value
+    parse.__name__ = kind.__name__        # argparse names the type in its messages
+    return parse
+
+
 positive = above(0)
 non_negative = at_least(0)
 # a camera's horizontal field of view, degrees: near 180 a pinhole's focal length goes to 0

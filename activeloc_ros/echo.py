@@ -9,6 +9,7 @@ import time
 
 import numpy as np
 
+from activeloc_ros.checks import argument, non_negative
 from activeloc_ros.nodes.recorder import message_class
 
 
@@ -33,30 +34,41 @@ def format_message(msg) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='python -m activeloc_ros.echo', description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument('topic')
-    parser.add_argument('--count', type=int, default=0, help='exit after N messages')
-    parser.add_argument('--timeout', type=float, default=0.0,
-                        help='exit with code 1 if the topic has not appeared/answered by then')
+    parser.add_argument('topic', help='topic name; a relative one (surprise_map) is resolved '
+                        'in the root namespace, as ros2 topic echo does')
+    parser.add_argument('--count', type=argument(non_negative, int), default=0,
+                        help='exit after N messages (0: never)')
+    parser.add_argument('--timeout', type=argument(non_negative), default=0.0,
+                        help='exit with code 1 if the topic has not appeared/answered by then '
+                             '(seconds; 0: wait for ever)')
     args = parser.parse_args(argv)
     import rclpy
     from rclpy.executors import ExternalShutdownException
+    from rclpy.qos import QoSProfile
+    from activeloc_ros.nodes.qos import offered_reliability
     rclpy.init()
     node = rclpy.create_node('echo')
     start, received, sub = time.monotonic(), 0, None
     try:
+        try:
+            topic = node.resolve_topic_name(args.topic)
+        except RuntimeError as exc:     # rcl's verdict on the name
+            print(f'error: {args.topic!r} is no topic name: {exc}', file=sys.stderr)
+            return 2
         while rclpy.ok() and (not args.count or received < args.count):
             if sub is None:
-                types = dict(node.get_topic_names_and_types()).get(args.topic)
+                types = dict(node.get_topic_names_and_types()).get(topic)
                 if types:
                     def show(msg):
                         nonlocal received
                         received += 1
                         print(format_message(msg), '\n---', flush=True)
-                    sub = node.create_subscription(message_class(types[0]), args.topic,
-                                                   show, 10)
+                    # a best-effort publisher (a camera driver) is heard only best effort
+                    qos = QoSProfile(depth=10, reliability=offered_reliability(node, topic))
+                    sub = node.create_subscription(message_class(types[0]), topic, show, qos)
             rclpy.spin_once(node, timeout_sec=0.1)
             if args.timeout and not received and time.monotonic() - start > args.timeout:
-                print(f'no message on {args.topic} within {args.timeout:g} s', file=sys.stderr)
+                print(f'no message on {topic} within {args.timeout:g} s', file=sys.stderr)
                 return 1
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

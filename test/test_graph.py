@@ -216,6 +216,37 @@ def test_bringup_processes_echo_and_record(tmp_path, graph_env):
     assert 'Topic: /surprise_map | Type: std_msgs/msg/Float32MultiArray' in info.stdout
 
 
+def test_echo_hears_a_best_effort_publisher_by_a_relative_name(context, capsys):
+    """As ros2 topic echo: 'chatter' means /chatter, and a best-effort publisher (a camera
+    driver's sensor QoS) is heard. Before, echo matched only '/chatter' and subscribed
+    reliably, so it heard neither."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import ReliabilityPolicy
+    from std_msgs.msg import String
+    from activeloc_ros import echo
+    node = Node('talker', context=context)
+    pub = node.create_publisher(String, 'echo_test_chatter',
+                                QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+    node.create_timer(0.1, lambda: pub.publish(String(data='hello')))
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    try:
+        assert echo.main(['echo_test_chatter', '--count', '1', '--timeout', '20']) == 0
+    finally:
+        executor.shutdown()
+        thread.join(5)
+        node.destroy_node()
+    assert 'data: hello' in capsys.readouterr().out
+    for bad in (['x', '--timeout', 'nan'], ['x', '--count', '-1']):
+        with pytest.raises(SystemExit) as exc:
+            echo.main(bad)
+        assert exc.value.code == 2 and 'must be >= 0' in capsys.readouterr().err
+    assert echo.main(['bad name!']) == 2
+    assert 'is no topic name' in capsys.readouterr().err
+
+
 def write_text_bag(path):
     from activeloc_ros.bag import BagWriter
     writer = BagWriter(path)
