@@ -42,10 +42,18 @@ def test_a_params_file_adds_its_configurations_rows_beside_the_defaults(tmp_path
 
     other = tmp_path / 'controller_only.yaml'
     other.write_text('controller:\n  ros__parameters:\n    kp: 0.5\n')
+    broken, plain = tmp_path / 'broken.yaml', tmp_path / 'plain.yaml'
+    broken.write_text('a: [b\n')
+    plain.write_text('just a string\n')
     for path, message in ((tmp_path / 'missing.yaml', 'no such file'),
-                          (other, 'sets no perception model parameter')):
+                          (other, 'sets no perception model parameter'),
+                          (broken, 'cannot be read'), (plain, 'not in ROS 2 format')):
         assert bench.main(argv + ['--params', str(path)]) == 2
         assert message in capsys.readouterr().err
+    for bad in (['--threads', '0'], ['--warmup', '-5']):
+        with pytest.raises(SystemExit) as exc:
+            bench.main(argv + bad)
+        assert exc.value.code == 2 and '--threads >= 1' in capsys.readouterr().err
 
 
 def test_the_cpu_line_says_what_is_missing():

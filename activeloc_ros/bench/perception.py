@@ -78,6 +78,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         p.error('--every must be at least 1')
     if args.frames <= args.warmup:
         p.error('--frames must exceed --warmup')
+    if args.warmup < 0 or args.threads < 1:
+        p.error('--warmup must be >= 0 and --threads >= 1')
     return args
 
 
@@ -163,10 +165,14 @@ def matmul_peak_gflops(dtype_name: str, *, n: int = 2048, seconds: float = 1.0) 
 
 def params_file_settings(path: str) -> dict[str, Any]:
     """The PerceptionConfig fields a ROS 2 params file sets for the perception node."""
-    from activeloc_ros.nodes.ros_params import file_values
+    from activeloc_ros.nodes.perception_node import PARAMS
+    from activeloc_ros.nodes.ros_params import file_values, files_problems
     from activeloc_ros.perception.config import PerceptionConfig
     if not Path(path).is_file():
         raise ConfigError(f'--params: no such file {path}')
+    problems = files_problems('perception', PARAMS, [path])   # as the node would find them
+    if problems:
+        raise ConfigError('--params: ' + '; '.join(problems))
     settings = PerceptionConfig.fields_in(file_values('perception', [path]))
     if not settings:
         raise ConfigError(f'--params: {path} sets no perception model parameter')
