@@ -346,8 +346,18 @@ def cli_values(ros_args: list[str]) -> dict:
 def check_node_params(args) -> None:
     """Check every node's parameters, from its files and bringup's options, as the node
     checks them at start, so that a bad value stops the run before any node starts."""
-    from activeloc_ros.nodes.ros_params import files_problems, validate
+    import difflib
+    from activeloc_ros.nodes.ros_params import BUILTIN_PARAMS, files_problems, validate
     problems = []
+    # a -p setting goes to every node, and each ignores what it does not declare: a name
+    # none of them declares (a typo) would change nothing, silently
+    declared = {*BUILTIN_PARAMS, *(p.name for node in graph_nodes(args)
+                                   for p in node_params(node))}
+    for name in cli_values(args.ros_args):
+        if ':' not in name and name not in declared:      # (node:name is for one node)
+            close = difflib.get_close_matches(name, declared, n=1)
+            problems.append(f"-p {name}: no node of this graph declares it"
+                            + (f" (did you mean {close[0]!r}?)" if close else ''))
     for node in graph_nodes(args):
         params = node_params(node)
         found = files_problems(node, params, [*packaged_params_files(node), *args.params])

@@ -300,6 +300,8 @@ def test_bringup_refuses_bad_input_before_any_node(tmp_path, graph_env, case, me
     (['--ros-args', '--garbage'], {}, "unknown ROS arguments ['--garbage'"),
     (['--ros-args', '-p', 'kp:=nan', '--'], {}, "parameter 'kp' must be a number, got 'nan'"),
     (['--ros-args', '-p', 'checkpoint:=/nonexistent', '--'], {}, "'checkpoint' must be empty or"),
+    (['--ros-args', '-p', 'kpp:=0.5', '--'], {}, "-p kpp: no node of this graph declares it "
+                                                 "(did you mean 'kp'?)"),
 ])
 def test_bringup_checks_every_input_before_starting_any_node(tmp_path, graph_env, options,
                                                              files, message):
