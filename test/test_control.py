@@ -1,6 +1,7 @@
 """The reactive control maths without ROS: geometry, the PD law (Eq. 4), the watchdog."""
 import math
 
+import numpy as np
 import pytest
 
 from activeloc_ros.control import (
@@ -74,6 +75,34 @@ def test_distortion_is_undone():
     xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
     yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
     assert intr.normalized(320.0 + 600.0 * xd, 240.0 + 600.0 * yd) == pytest.approx((x, y))
+
+
+def test_where_the_lens_model_does_not_invert_the_pixel_stays_as_measured():
+    """Strong barrel distortion folds the image's corners: the fixed-point inverse does not
+    converge there and its last step was 85 (normalised units), or infinite."""
+    intr = Intrinsics(400.0, 400.0, 319.5, 239.5, 640, 480, dist=(-0.4, 0.2, 0.001, 0.001, -0.05))
+    x, y = intr.normalized(592.0, 456.0)
+    assert (x, y) == pytest.approx(((592.0 - 319.5) / 400, (456.0 - 239.5) / 400))
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        dist = tuple(rng.uniform(-1.0, 1.0, 5) * (1.0, 1.0, 0.05, 0.05, 1.0))
+        intr = Intrinsics(400.0, 400.0, 319.5, 239.5, 640, 480, dist=dist)
+        u, v = rng.uniform(0, 639), rng.uniform(0, 479)
+        assert all(math.isfinite(e) for e in angular_error(u, v, intr)), (dist, u, v)
+
+
+def test_a_location_the_geometry_cannot_aim_at_never_reaches_the_pd(monkeypatch):
+    """A NaN error in the PD's memory made every later command NaN, which the guard
+    turned into 'stay': the arm froze for good, tracking by every count."""
+    from activeloc_ros.control import reactive
+    ctl = make_controller()
+    with monkeypatch.context() as patch:
+        patch.setattr(reactive, 'angular_error', lambda *a, **k: (math.nan, 0.0))
+        assert ctl.on_location(pixel_for(5.0), D435.cy, 0.0, 0.1) is None
+    assert ctl.ignored == {'bad geometry': 1}
+    turn = ctl.on_location(pixel_for(5.0), D435.cy, 0.2, 0.3)
+    assert all(math.isfinite(q) for q in turn.joints_deg)
+    assert turn.joints_deg[0] == pytest.approx(HOME_DEG[0] + 5.0)
 
 
 def test_binning_and_roi_map_back_to_full_resolution():

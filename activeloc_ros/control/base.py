@@ -185,11 +185,13 @@ class BaseController:
                                    min_peak=cfg.min_peak, last_capture=self._last_capture)
         if problem is not None:
             return self._ignore(problem, t_now)
+        error, _ = angular_error(u, v, intr, camera_tilt=math.radians(cfg.camera_tilt_deg))
+        if not math.isfinite(error):                  # never into the PD: NaN would stay
+            return self._ignore('bad geometry', t_now)
         if t_now - self._last_accept > cfg.watchdog_timeout:
             self.pd.reset()
         self._last_capture, self._last_accept = t_capture, t_now
         self._accepted, self._holding = True, False
-        error, _ = angular_error(u, v, intr, camera_tilt=math.radians(cfg.camera_tilt_deg))
         heading = self._heading_at(t_capture)
         change, _ = self.pd.update((error, 0.0), t_capture, camera=(heading, 0.0))
         max_turn = math.radians(cfg.max_turn_deg_s)

@@ -88,18 +88,34 @@ class Intrinsics:
         return x, y
 
 
+UNDISTORT_TOLERANCE = 1e-4   # normalised units (0.05 px at fx 500): a converged inverse
+
+
+def _distort(x: float, y: float, k: Sequence[float]) -> tuple[float, float, float]:
+    """The Brown-Conrady model at an undistorted point: (radial factor, dx, dy)."""
+    k1, k2, p1, p2, k3, k4, k5, k6 = k
+    r2 = x * x + y * y
+    radial = (1 + ((k3 * r2 + k2) * r2 + k1) * r2) / (1 + ((k6 * r2 + k5) * r2 + k4) * r2)
+    return (radial, 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
+            p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
+
+
 def _undistort(xd: float, yd: float, dist: Sequence[float]) -> tuple[float, float]:
-    """Invert the Brown-Conrady model by fixed-point iteration (as OpenCV does)."""
-    k1, k2, p1, p2, k3, k4, k5, k6 = (list(dist) + [0.0] * 8)[:8]
+    """Invert the Brown-Conrady model by fixed-point iteration (as OpenCV does). Where it
+    does not converge (far outside the calibrated region, where strong distortion folds
+    the image) the point is left as measured: the iteration's last step there can lie
+    anywhere, even at infinity."""
+    k = (list(dist) + [0.0] * 8)[:8]
     x, y = xd, yd
     for _ in range(20):
-        r2 = x * x + y * y
-        radial = (1 + ((k3 * r2 + k2) * r2 + k1) * r2) / (1 + ((k6 * r2 + k5) * r2 + k4) * r2)
+        radial, dx, dy = _distort(x, y, k)
         if not math.isfinite(radial) or radial <= 0.0:
-            return xd, yd  # far outside the calibrated region: leave it as measured
-        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+            return xd, yd
         x, y = (xd - dx) / radial, (yd - dy) / radial
+    radial, dx, dy = _distort(x, y, k)
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(radial)
+            and math.hypot(x * radial + dx - xd, y * radial + dy - yd) <= UNDISTORT_TOLERANCE):
+        return xd, yd
     return x, y
 
 

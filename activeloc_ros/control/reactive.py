@@ -320,6 +320,8 @@ class ReactiveController:
         pose = self._pose_at(t_capture)
         pan, tilt = self.mapping.pan_tilt(pose)
         error = angular_error(u, v, intr, camera_tilt=tilt)
+        if not all(math.isfinite(e) for e in error):   # never into the PD: NaN would stay
+            return self._ignore('bad geometry', t_now)
         if not self._confirmed(pan + error[0], tilt + error[1], error):
             return self._ignore('unconfirmed', t_now)
         if self._holding or t_now - self._last_accept > self.config.watchdog_timeout:
