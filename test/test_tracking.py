@@ -13,6 +13,7 @@ from activeloc_ros.bench import tracking as bench
 from activeloc_ros.bench.pointers import ModelPointer, OraclePointer
 from activeloc_ros.closed_loop import FrameRecord, Pointing, run_episode
 from activeloc_ros.control.base import BaseConfig, BaseController, Twist
+from activeloc_ros.control.pd import PDConfig
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.tracking import reward
 from activeloc_ros.tracking.world import TrackingConfig, TrackingWorld
@@ -79,6 +80,20 @@ def test_after_the_clock_runs_back_a_restart_lets_the_watchdog_stop_the_base():
     assert stop.twist == Twist() and stop.reason == 'hold'
     ctl.observe((0.0, 0.0, 0.0), 3.2)
     assert ctl.on_location(300, 120, 3.2, 3.2).twist.turn < 0  # in order again
+
+
+def test_a_heading_that_wraps_at_pi_turns_the_base_as_one_that_does_not():
+    """Odometry wraps the heading at +-pi; with a derivative gain the PD saw a 2 pi jump
+    there and, for a step, turned the base the wrong way at its top rate."""
+    turns = []
+    for second in (3.153, 3.153 - 2 * math.pi):
+        ctl = BaseController(BaseConfig(pd=PDConfig.variant('paper')))
+        ctl.set_intrinsics(SHORT.intrinsics)
+        ctl.observe((0.0, 0.0, 3.1), 0.0)
+        ctl.on_location(20, 120, 0.0, 0.0)
+        ctl.observe((0.0, 0.0, second), 0.1)
+        turns.append(ctl.on_location(20, 120, 0.1, 0.1).twist.turn)
+    assert turns[0] > 0 and turns[1] == pytest.approx(turns[0])
 
 
 def test_ground_rule_reads_the_distance_from_the_box_foot():

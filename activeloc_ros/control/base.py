@@ -154,9 +154,15 @@ class BaseController:
         self.intrinsics = intrinsics
 
     def observe(self, pose: tuple[float, float, float], t: float) -> None:
-        """The base's odometry (x, y, heading in radians) at ``t``."""
+        """The base's odometry (x, y, heading in radians) at ``t``. The heading is kept
+        continuous (unwrapped): odometry wraps it at +-pi, and the PD's derivative of the
+        target's direction would see a 2 pi jump there and turn the base the wrong way."""
         if len(pose) == 3 and all(math.isfinite(v) for v in pose) and math.isfinite(t):
-            self.yaw = [s for s in self.yaw if s[0] > t - 2.0] + [(t, float(pose[2]))]
+            heading = float(pose[2])
+            if self.yaw:
+                last = self.yaw[-1][1]
+                heading = last + math.remainder(heading - last, math.tau)
+            self.yaw = [s for s in self.yaw if s[0] > t - 2.0] + [(t, heading)]
 
     def restart(self, t_now: float) -> None:
         """The clock ran back to ``t_now``: forget the odometry's times, the last location and
