@@ -93,3 +93,22 @@ def test_a_failure_while_learning_is_raised_in_the_callers_thread():
     assert not pipeline.drain(timeout=30)
     with pytest.raises(PipelineError, match='publisher gone'):
         pipeline.submit(clip(2)[1])
+
+
+def test_a_caller_that_asks_busy_learns_of_the_failure():
+    """The perception node asks `busy` before it takes a frame. After the learner died with
+    a frame waiting, `busy` stayed True for ever: every frame skipped, nothing raised."""
+    queued = threading.Event()
+
+    def publish(result, tag):
+        queued.wait(30)               # the next frame is waiting when this one fails
+        raise RuntimeError('publisher gone')
+
+    pipeline = Pipeline(make(), publish)
+    frames = clip(2)
+    pipeline.submit(frames[0])
+    pipeline.submit(frames[1])
+    queued.set()
+    assert not pipeline.drain(timeout=30)
+    with pytest.raises(PipelineError, match='publisher gone'):
+        pipeline.busy()

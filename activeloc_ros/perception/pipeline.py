@@ -66,7 +66,13 @@ class Pipeline:
     def busy(self) -> bool:
         """Whether an observed frame already waits for the learner: a frame submitted now
         would wait for a whole learning step, so a camera's caller had better skip it and
-        take a newer one once the learner is free."""
+        take a newer one once the learner is free.
+
+        :raises PipelineError: the learning thread failed or was closed (a caller that only
+            asked `busy` would otherwise skip every frame for ever: the waiting frame is
+            never taken).
+        """
+        self._check()
         return self._waiting.full()
 
     def drain(self, timeout: float | None = None) -> bool:
