@@ -92,6 +92,16 @@ def test_the_map_image_carries_the_frames_header(rig, pipeline):
 
 
 @pytest.mark.parametrize('pipeline', [False, True])
+def test_a_frame_stamped_before_1970_is_mapped_not_fatal(rig, pipeline):
+    """A stamp's seconds are an int32: -1 can come over a topic. rclpy's Time refuses it,
+    and computing the latency with it killed the node (with the pipeline: its learner)."""
+    from sensor_msgs.msg import Image
+    executor, node, probe, heard = rig(f'pipeline:={str(pipeline).lower()}')
+    publisher = probe.create_publisher(Image, 'camera/image_raw', 10)
+    assert feed(executor, publisher, image('cam', -1), lambda: len(heard['maps']) >= 2)
+
+
+@pytest.mark.parametrize('pipeline', [False, True])
 def test_the_model_is_told_each_frames_capture_time(rig, pipeline):
     """From the header's stamp: the motion weighting's scale follows the time between
     frames (`motion_period`)."""

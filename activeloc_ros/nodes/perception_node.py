@@ -30,7 +30,6 @@ from geometry_msgs.msg import PointStamped, PolygonStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rclpy.time import Time
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Float32MultiArray, Header, MultiArrayDimension
 
@@ -257,9 +256,10 @@ class PerceptionNode(Node):
             blended = overlay(rgb, result.surprise_map, alpha=self.params['overlay_alpha'])
             image = Image(header=header, **rgb_to_image_fields(blended))
             self.overlay_pub.publish(image)
-        latency = self.get_clock().now() - Time.from_msg(header.stamp)
+        # (rclpy's Time refuses the negative seconds a stamp can carry: not from_msg)
+        latency_s = self.get_clock().now().nanoseconds * 1e-9 - stamp_s(header.stamp)
         with self.stats_lock:
-            self.stats.map_published(latency_s=latency.nanoseconds / 1e9, compute_s=compute_s)
+            self.stats.map_published(latency_s=latency_s, compute_s=compute_s)
         if self.stats.maps == 1:
             self.get_logger().info('first surprise map published')
 
