@@ -305,6 +305,22 @@ def test_realtime_sim_moves_its_arm_and_the_camera_with_it(context):
     assert base[-1] == pytest.approx(90.0 + 12.0) and base == sorted(base)
 
 
+def test_max_frames_ends_a_realtime_sim_too(context):
+    """It was read in lockstep only: in real time it was accepted and did nothing."""
+    from rclpy.executors import SingleThreadedExecutor
+    from activeloc_ros.nodes.sim_node import SimNode
+    sim = SimNode(context=context, cli_args=params_args(
+        'sim', 'rate:=5.0', 'loop:=true', 'wait_for_subscriber:=0.0', 'max_frames:=3'))
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(sim)
+    try:
+        assert spin_until(executor, lambda: sim.finished, 30)
+        assert sim.published == 3
+    finally:
+        executor.shutdown()
+        sim.destroy_node()
+
+
 def test_lockstep_graph_steps_frame_by_frame_like_closed_loop(context):
     """The sim (lockstep), the real perception and controller on simulated time: every
     frame is processed and answered (a command or an ignored location), each image's stamp

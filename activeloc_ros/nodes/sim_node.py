@@ -195,7 +195,15 @@ class SimNode(Node):
                 else:
                     self._realtime_tick()
 
+    def _max_frames_reached(self) -> bool:
+        if self.params['max_frames'] and self.published >= self.params['max_frames']:
+            self._finish('max_frames reached')
+            return True
+        return False
+
     def _realtime_tick(self) -> None:
+        if self._max_frames_reached():
+            return
         if self.pending is None:
             self.pending = self._next_scene()
             if self.pending is None:
@@ -220,8 +228,7 @@ class SimNode(Node):
         if action != 'next':
             return
         self.playback.report(step.missed, 'lockstep')
-        if self.params['max_frames'] and self.published >= self.params['max_frames']:
-            self._finish('max_frames reached')
+        if self._max_frames_reached():
             return
         scene = self._next_scene()
         if scene is None:
