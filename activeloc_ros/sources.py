@@ -108,6 +108,9 @@ class BagSource(Source):
 
     def read(self) -> Frame | None:
         for _, msgtype, log_ns, msg in self._messages:
+            if msgtype not in bag.IMAGE_TYPES:     # a topic may carry more than one type
+                self.skipped[f'not an image: {msgtype}'] += 1
+                continue
             try:
                 if msgtype == 'sensor_msgs/msg/CompressedImage':
                     rgb = decode_compressed(msg.format, msg.data.tobytes())

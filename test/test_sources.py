@@ -102,6 +102,26 @@ def test_bag_with_raw_images_and_a_bad_encoding(tmp_path):
     assert any('16UC1' in problem for problem in source.skipped)
 
 
+def test_a_message_of_another_type_on_the_image_topic_is_skipped_and_named(tmp_path):
+    """Before, a String among the images raised AttributeError and killed the camera."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import get_typestore, Stores
+    store = get_typestore(Stores.ROS2_JAZZY)
+    path = tmp_path / 'mixed'
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        image = writer.add_connection('/cam/image', 'sensor_msgs/msg/Image', typestore=store)
+        text = writer.add_connection('/cam/image', 'std_msgs/msg/String', typestore=store)
+        data = store.serialize_cdr(raw_image(store), 'sensor_msgs/msg/Image')
+        writer.write(image, 10**9, data)
+        writer.write(text, 10**9 + 1, store.serialize_cdr(
+            store.types['std_msgs/msg/String'](data='hello'), 'std_msgs/msg/String'))
+        writer.write(image, 10**9 + 2, data)
+    source = open_source(f'bag:{path}', clock=lambda: 0.0)
+    assert source.read() is not None and source.read() is not None
+    assert source.read() is None
+    assert source.skipped == {'not an image: std_msgs/msg/String': 1}
+
+
 def test_bag_without_image_topic(tmp_path):
     def string(store):
         return store.types['std_msgs/msg/String'](data='hello')
