@@ -181,6 +181,8 @@ class FolderSource(Source):
             if bgr is not None:
                 return Frame(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB),
                              frame_time(self._index - 1, self.fps), self._index - 1)
+            # unreadable or gone since the start: counted, so the run says so
+            self.skipped['unreadable image file'] += 1
         return None
 
 

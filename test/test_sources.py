@@ -183,6 +183,10 @@ def test_video_and_folder_sources(tmp_path):
     assert frames[3] is None and frames[2].stamp == pytest.approx(0.4)
     np.testing.assert_array_equal(frames[1].rgb, cv2.cvtColor(rgb_frame(seed=1),
                                                               cv2.COLOR_BGR2RGB))
+    (folder / '001.png').unlink()            # gone since the start: counted, not silent
+    source.rewind()
+    assert [source.read().index for _ in range(2)] == [0, 2] and source.read() is None
+    assert source.skipped == {'unreadable image file': 1}
     with pytest.raises(SourceError, match='not found'):
         open_source(f'video:{tmp_path / "none.mp4"}', clock=lambda: 0.0)
     (tmp_path / 'bad.mp4').write_bytes(b'garbage')
