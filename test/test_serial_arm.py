@@ -119,6 +119,29 @@ def test_the_newest_command_wins(bench):
     assert bench.emulator.host_writes() == [(30, 40, 180, 170, 0, 73)]
 
 
+def test_a_lost_or_garbled_write_is_sent_again(bench):
+    """A write is sent once per new target: lost (no answer) or garbled on the way (the
+    sketch answers <e>), the arm stayed short of it, a hold or a stop's home pose for good."""
+    bench.run(0.1)
+    bench.emulator.silent = True                    # this write is never answered
+    bench.link.command([30, 40, 180, 170, 0, 73])
+    bench.run(0.05)
+    bench.emulator.silent = False
+    bench.run(2.5)
+    assert bench.link.joints == (30, 40, 180, 170, 0, 73) and not bench.link.busy
+    target = (40, 40, 180, 170, 0, 73)
+    bench.emulator.silent = True
+    bench.link.command(target)
+    bench.run(0.03)                                 # written, not taken
+    bench.emulator.silent = False
+    bench.emulator.inject(b'<e>')                   # the sketch's answer to a garbled write
+    bench.run(0.1)                                  # well within the 0.2 s reply timeout
+    assert bench.emulator.host_writes()[-2:] == [target, target]
+    bench.run(1.0)
+    assert bench.link.joints == target and not bench.link.busy
+    assert bench.link.state == 'connected' and bench.link.stats.losses == 0
+
+
 def test_noise_malformed_and_out_of_range_frames_are_counted_and_ignored(bench):
     bench.run(0.1)
     bench.link.command(HOME_DEG)

@@ -223,6 +223,9 @@ class BraccioLink:
         elif frame.kind == 'e':
             self._awaiting_since = None
             self.stats.rejected += 1
+            if self._write_unanswered:   # the write came garbled: send the target again
+                self._write_unanswered = False
+                self._pending = self.target is not None
         elif frame.kind == 'bad':
             self.stats.bad_frames += 1
             self.stats.last_bad = frame.reason
@@ -240,6 +243,8 @@ class BraccioLink:
             return
         if self._awaiting_since is not None and now - self._awaiting_since < self.reply_timeout:
             return
+        if self._awaiting_since is not None and self._write_unanswered:
+            self._pending = self.target is not None    # the write was lost: send it again
         if self._pending and self.target is not None:
             self._tx += protocol.encode_write(self.target)
             self.stats.writes += 1
