@@ -284,6 +284,40 @@ def test_bringup_runs_the_tracking_world_in_lockstep_as_the_benchmark_does(tmp_p
     assert graph[-1] != graph[0]                    # the base moved
 
 
+def test_a_realtime_world_applies_cmd_vel_at_once_after_its_rate_is_raised(context):
+    """Commands were timed by the wall clock at the set rate and the world by its steps:
+    raising the rate from 1 to 4 after 1 s put every later command 3 world-seconds in the
+    world's future (30 steps), as did a world that fell behind its wall clock."""
+    from geometry_msgs.msg import Twist as TwistMsg
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from activeloc_ros.nodes.tracking_node import TrackingNode
+    from conftest import params_args, spin_until
+    node = TrackingNode(context=context, cli_args=params_args(
+        'tracking', 'wait_for_subscriber:=0.0', 'scene:=room'))
+    probe = Node('probe', context=context)
+    turn = probe.create_publisher(TwistMsg, 'cmd_vel', 10)
+    executor = SingleThreadedExecutor(context=context)
+    for made in (node, probe):
+        executor.add_node(made)
+    try:
+        assert spin_until(executor, lambda: node.world.t >= 1.0, 30)
+        assert node.set_parameters([Parameter('rate', value=4.0)])[0].successful
+        heading = node.world.base.heading
+        msg = TwistMsg()
+        msg.angular.z = 1.0
+        assert spin_until(executor, lambda: node.command_sub.get_publisher_count() > 0, 10)
+        turn.publish(msg)
+        start = node.world.t
+        assert spin_until(executor, lambda: node.world.t >= start + 0.5, 30)
+        assert node.world.base.heading - heading > 0.2    # turning by then: 1 rad/s
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        probe.destroy_node()
+
+
 @pytest.mark.parametrize('argv, message', [
     (['--world', 'tracking:moon'], 'use tracking:SCENE[:SEED]'),
     (['--world', 'tracking:room:x'], 'SEED a whole number'),

@@ -115,7 +115,11 @@ class TrackingNode(Node):
 
     def on_parameters(self, values: dict, changed: set) -> None:
         changed = changed & values.keys()
-        self.params.update({name: values[name] for name in changed})
+        with self._lock:
+            wall = self._wall()
+            self.params.update({name: values[name] for name in changed})
+            if 'rate' in changed and not self.waiting:   # the world's clock goes on from here
+                self.started_at = time.monotonic() - wall / self.params['rate']
         self.get_logger().info('set at run time: ' + ', '.join(
             f'{name} {values[name]!r}' for name in sorted(changed)))
 
@@ -131,7 +135,7 @@ class TrackingNode(Node):
                 return
             if self._closed:
                 return
-            self.world.act(twist, self.world.t if self.lockstep else self._wall())
+            self.world.act(twist, self.world.t if self.lockstep else self._command_time())
             if self.lockstep is not None and self.lockstep.phase == ANSWER:
                 # a Twist has no stamp: a command once the frame is out answers it (DDS may
                 # bring it before this node hears the location it answers)
@@ -154,6 +158,13 @@ class TrackingNode(Node):
     def _wall(self) -> float:
         """Real time: the world's seconds since its first step, at the set rate."""
         return (time.monotonic() - self.started_at) * self.params['rate']
+
+    def _command_time(self) -> float:
+        """Real time: when a command arriving now reaches the base, on the world's clock.
+        Never later than the middle of the world's next step: a world that fell behind the
+        wall clock (slow rendering) would otherwise keep every command for later, later and
+        later as it fell further behind."""
+        return min(self._wall(), self.world.t + 0.5 * self.world.config.step)
 
     def tick(self) -> None:
         with self._lock:
