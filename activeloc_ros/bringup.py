@@ -214,7 +214,27 @@ def node_arguments(node: str, args) -> list[str]:
         ros_args += ['-p', f'backend:={backend}']
         if port:
             ros_args += ['-p', f'port:={port}']
-    return ros_args + args.ros_args
+    from activeloc_ros.nodes.ros_params import BUILTIN_PARAMS
+    return ros_args + for_node(args.ros_args,
+                               {*BUILTIN_PARAMS, *(p.name for p in node_params(node))})
+
+
+def for_node(ros_args: list[str], declared: set[str]) -> list[str]:
+    """The user's ROS arguments without the ``-p`` rules this node does not declare: each
+    rule goes to the nodes it is for (`check_node_params` made sure some node is), as a
+    node refuses a rule for a parameter it does not have."""
+    out, skip = [], False
+    for flag, item in zip(ros_args, [*ros_args[1:], None]):
+        if skip:
+            skip = False
+            continue
+        if flag in ('-p', '--param') and item is not None and ':=' in item:
+            name = item.partition(':=')[0]
+            if ':' not in name and name not in declared:
+                skip = True
+                continue
+        out.append(flag)
+    return out
 
 
 def own_ros_args(args) -> list[str] | None:
@@ -334,30 +354,19 @@ def node_values(node: str, files=()) -> dict:
 
 def cli_values(ros_args: list[str]) -> dict:
     """The ``-p name:=value`` settings among ROS arguments, typed as rcl types them."""
-    from activeloc_ros.nodes.ros_params import parse_value
-    values = {}
-    for flag, item in zip(ros_args, ros_args[1:]):
-        if flag in ('-p', '--param') and ':=' in item:
-            name, _, text = item.partition(':=')
-            values[name] = parse_value(text)
-    return values
+    from activeloc_ros.nodes.ros_params import cli_param_rules, parse_value
+    return {name: parse_value(text) for name, text in cli_param_rules(ros_args)}
 
 
 def check_node_params(args) -> None:
     """Check every node's parameters, from its files and bringup's options, as the node
     checks them at start, so that a bad value stops the run before any node starts."""
-    import difflib
-    from activeloc_ros.nodes.ros_params import BUILTIN_PARAMS, files_problems, validate
-    problems = []
-    # a -p setting goes to every node, and each ignores what it does not declare: a name
-    # none of them declares (a typo) would change nothing, silently
-    declared = {*BUILTIN_PARAMS, *(p.name for node in graph_nodes(args)
-                                   for p in node_params(node))}
-    for name in cli_values(args.ros_args):
-        if ':' not in name and name not in declared:      # (node:name is for one node)
-            close = difflib.get_close_matches(name, declared, n=1)
-            problems.append(f"-p {name}: no node of this graph declares it"
-                            + (f" (did you mean {close[0]!r}?)" if close else ''))
+    from activeloc_ros.nodes.ros_params import files_problems, unknown_cli_params, validate
+    # each -p setting goes to the nodes that declare it (`for_node`): one that none of
+    # them declares (a typo) would change nothing, silently
+    problems = unknown_cli_params(
+        args.ros_args, [p.name for node in graph_nodes(args) for p in node_params(node)],
+        unknown='no node of this graph declares it')
     for node in graph_nodes(args):
         params = node_params(node)
         found = files_problems(node, params, [*packaged_params_files(node), *args.params])

@@ -193,6 +193,26 @@ def test_an_open_ended_parameter_refuses_infinity(context, node, name):
         made.destroy_node()
 
 
+def test_a_command_line_parameter_no_node_declares_is_refused_not_ignored(context):
+    from activeloc_ros.errors import ConfigError
+    from activeloc_ros.nodes.controller_node import ControllerNode
+    with pytest.raises(ConfigError, match="-p kpp: no such parameter \\(did you mean 'kp'"):
+        ControllerNode(context=context, cli_args=params_args('controller', 'kpp:=0.5'))
+    made = ControllerNode(context=context, cli_args=params_args(
+        'controller', 'kp:=0.5', 'use_sim_time:=false') + ['-p', 'camera:rate:=2.0'])
+    assert made.get_parameter('kp').value == 0.5          # (a node-prefixed rule is rcl's)
+    made.destroy_node()
+
+
+def test_bringup_gives_each_node_only_the_settings_it_declares():
+    from activeloc_ros.bringup import for_node
+    ros_args = ['-r', '__ns:=/r1', '-p', 'kp:=0.5', '--param', 'rate:=2.0',
+                '-p', 'use_sim_time:=true', '-p', 'camera:loop:=true']
+    assert for_node(ros_args, {'kp', 'use_sim_time'}) == [
+        '-r', '__ns:=/r1', '-p', 'kp:=0.5', '-p', 'use_sim_time:=true',
+        '-p', 'camera:loop:=true']
+
+
 @pytest.mark.parametrize('node_name', NODE_NAMES)
 def test_every_node_refuses_unknown_ros_arguments_with_a_message(node_name, capsys):
     import importlib

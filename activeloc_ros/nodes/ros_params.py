@@ -118,6 +118,28 @@ def _declared_type(value) -> 'Parameter.Type | None':
     return Parameter.Type.from_parameter_value(value)
 
 
+def cli_param_rules(args: Iterable[str] | None) -> list[tuple[str, str]]:
+    """The ``-p name:=value`` rules of a command line, as (name, value text): rcl applies a
+    rule without a node prefix (``node:name:=``) to every node of the process."""
+    args = list(args or [])
+    return [item.partition(':=')[::2] for flag, item in zip(args, args[1:])
+            if flag in ('-p', '--param') and ':=' in item]
+
+
+def unknown_cli_params(args: Iterable[str] | None, declared: Iterable[str], *,
+                       unknown: str = 'no such parameter') -> list[str]:
+    """Each ``-p`` rule naming a parameter that is not in ``declared`` (nor rclpy's), with
+    the nearest declared name: the node would ignore it, silently."""
+    known = {*declared, *BUILTIN_PARAMS}
+    problems = []
+    for name, _ in cli_param_rules(args):
+        if ':' not in name and name not in known:
+            close = difflib.get_close_matches(name, known, n=1)
+            problems.append(f'-p {name}: {unknown}'
+                            + (f' (did you mean {close[0]!r}?)' if close else ''))
+    return problems
+
+
 def params_files(args: Iterable[str] | None) -> list[str]:
     """The ``--params-file`` paths among ROS command-line arguments."""
     args = list(args or [])
@@ -299,6 +321,10 @@ def declare(node, params: Sequence[Param], *, cli_args: Sequence[str] | None = N
     if use_global_arguments:
         files = params_files(_process_args) + files
     check_params_files(node, params, files)
+    unknown = unknown_cli_params([*(_process_args if use_global_arguments else []),
+                                  *(cli_args or [])], [p.name for p in params])
+    if unknown:
+        raise ConfigError(f'node {node.get_name()!r}: ' + '; '.join(unknown))
     node.add_on_set_parameters_callback(on_set)
     node.add_post_set_parameters_callback(post_set)
     for spec in params:
