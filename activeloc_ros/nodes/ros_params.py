@@ -391,9 +391,10 @@ def lean_executor(context=None):
 def ros_args_problem(args: list[str]) -> str | None:
     """Why rcl refuses a command line's ROS arguments (an unknown flag, ``-p`` without a
     rule), or None; rclpy raises it from ``init`` as a bare RuntimeError."""
+    from rclpy.signals import SignalHandlerOptions
     context = rclpy.Context()
-    try:
-        rclpy.init(args=args, context=context)
+    try:   # (no signal handlers: the caller's, for Ctrl-C, stay as they are)
+        rclpy.init(args=args, context=context, signal_handler_options=SignalHandlerOptions.NO)
     except RuntimeError as exc:
         if type(exc).__name__ == 'UnknownROSArgsError':
             return f'unknown ROS arguments {exc}'
