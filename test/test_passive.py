@@ -103,6 +103,9 @@ def test_cli_errors(tmp_path, capsys):
     assert passive.main(['--data', str(tmp_path / 'absent'), '--no-model']) == 2
     assert 'not a directory' in capsys.readouterr().err
     assert passive.main(['--data', str(tmp_path), '--no-model']) == 1
+    make_moving_square(tmp_path, 'c_square', n=4)
+    assert passive.main(['--data', str(tmp_path), '--no-model', '--warmup', '100']) == 1
+    assert 'no frame was scored' in capsys.readouterr().err
     for bad, message in ((['--seed', '-1'], '--seed'), (['--warmup', '-5'], '--warmup'),
                          (['--pan', '5', '--pan-step', 'inf'], '--pan-step')):
         assert passive.main(['--data', str(tmp_path), '--no-model', *bad]) == 2

@@ -483,6 +483,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f'error: {err}', file=sys.stderr)
         return 2
     result['skipped'] = skipped + result['skipped']
+    if result['methods'] and not any(row['frames'] for row in result['methods']):
+        print(f'error: no frame was scored: --warmup {args.warmup} leaves none of the '
+              'annotated frames', file=sys.stderr)
+        return 1
     result['settings'] = {'data': str(root), 'max_frames': args.max_frames,
                           'warmup': args.warmup, 'seed': args.seed, 'grid': list(GRID),
                           'auc_jitter': args.auc_jitter, 'set': args.set,
