@@ -811,6 +811,8 @@ def summary(monitor: Monitor, elapsed: float, reason: str, codes: dict, recorder
     if recorder is not None:
         counts = ', '.join(f'{t} {n}' for t, n in sorted(recorder.counts.items()))
         lines.append(f'  recorded {recorder.path}: {counts}')
+        for topic, why in sorted(recorder.unrecorded.items()):
+            lines.append(f'  NOT RECORDED {topic}: {why}')
         if recorder.error is not None:
             lines.append(f'  RECORDING FAILED: {recorder.error}')
     return '\n'.join(lines)

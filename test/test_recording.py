@@ -128,3 +128,37 @@ def test_make_sample_replaces_a_bag_but_never_another_folder(tmp_path, capsys):
     assert bag.main(['make-sample', '--video', str(video), '--out', '/proc/x/y']) == 1
     assert capsys.readouterr().err.startswith('error:')
     assert sorted(p.name for p in tmp_path.iterdir()) == ['clip.avi', 'precious', 'sample']
+
+
+def test_a_type_the_bag_cannot_describe_is_left_out_and_named_not_fatal(tmp_path, context):
+    """nav_msgs/Goals is in the installed interfaces but not in rosbags' Jazzy types: its
+    add_topic raised TypesysError out of the discovery timer, which ended the recorder (and
+    bringup's monitor with it) in the middle of the run."""
+    from nav_msgs.msg import Goals
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from std_msgs.msg import String
+    from activeloc_ros.nodes.recorder import RecorderNode
+    from conftest import spin_until
+    recorder = RecorderNode(tmp_path / 'bag', context=context)
+    talker = Node('talker', context=context)
+    goals = talker.create_publisher(Goals, 'rec_test_goals', 10)
+    words = talker.create_publisher(String, 'rec_test_words', 10)
+    executor = SingleThreadedExecutor(context=context)
+    for node in (recorder, talker):
+        executor.add_node(node)
+    try:
+        def heard():
+            goals.publish(Goals())
+            words.publish(String(data='kept'))
+            return recorder.counts.get('/rec_test_words', 0) >= 2
+        assert spin_until(executor, heard, 20)
+    finally:
+        executor.shutdown()
+        recorder.close()
+        for node in (recorder, talker):
+            node.destroy_node()
+    assert "nav_msgs/msg/Goals is not among the bag's types" in recorder.unrecorded[
+        '/rec_test_goals']
+    assert recorder.error is None
+    assert bag_facts(tmp_path / 'bag').message_count >= 2

@@ -17,6 +17,7 @@ import threading
 
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosbags.typesys import TypesysError
 
 from activeloc_ros.bag import BagWriter, RecordingError
 from activeloc_ros.nodes.qos import offered_reliability
@@ -46,6 +47,7 @@ class RecorderNode(Node):
         self.writer = BagWriter(self.path, wrap_stream=wrap_stream)
         self.lock = threading.Lock()     # callbacks and close() come from different threads
         self.counts: dict[str, int] = {}
+        self.unrecorded: dict[str, str] = {}   # topic -> why it is not in the bag
         self.subs = {}
         self.error: RecordingError | None = None
         for name, msgtype in (expected or {}).items():
@@ -64,17 +66,26 @@ class RecorderNode(Node):
         try:
             cls = message_class(msgtype)
         except (ImportError, AttributeError, ValueError):
-            self.get_logger().warning(f'cannot record {topic}: unknown type {msgtype}')
-            self.subs[topic] = None
+            self._cannot_record(topic, f'unknown type {msgtype}')
             return
         with self.lock:
             if self.error is not None or self.writer.closed:
                 return
-            self.writer.add_topic(topic, msgtype)
+            try:
+                self.writer.add_topic(topic, msgtype)
+            except TypesysError as exc:     # a type rosbags has no definition of
+                self._cannot_record(topic, f'{msgtype} is not among the bag\'s types ({exc})')
+                return
             self.counts[topic] = 0
         self.subs[topic] = self.create_subscription(
             cls, topic, lambda data, topic=topic: self.on_message(topic, data),
             QoSProfile(depth=QUEUE_DEPTH, reliability=reliability), raw=True)
+
+    def _cannot_record(self, topic: str, why: str) -> None:
+        """Leave ``topic`` out, once, and say so (bringup's summary names it too)."""
+        self.get_logger().warning(f'cannot record {topic}: {why}')
+        self.subs[topic] = None
+        self.unrecorded[topic] = why
 
     def on_message(self, topic: str, data: bytes) -> None:
         with self.lock:
