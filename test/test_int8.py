@@ -107,6 +107,18 @@ def test_int8_without_openvino_says_what_to_install(cache, monkeypatch):
     assert make('auto').precision in ('float32', 'bfloat16')   # the slower, correct run
 
 
+def test_a_cache_it_cannot_write_is_an_error_for_int8_and_float32_for_auto(cache, monkeypatch,
+                                                                          capsys):
+    """Found before the minute of calibration, not after it as a PermissionError."""
+    (cache / 'afile').write_text('')
+    monkeypatch.setenv('ACTIVELOC_CACHE', str(cache / 'afile' / 'cache'))
+    with pytest.raises(WeightsError, match='cannot write the int8 encoder into'):
+        make('int8')
+    assert 'building' not in capsys.readouterr().err
+    assert make('auto').precision == 'float32'
+    assert 'the encoder runs in float32' in capsys.readouterr().err
+
+
 def test_auto_is_int8_for_a_frozen_imagenet_encoder_only(cache):
     assert make('auto').precision == 'int8'
     assert make('auto', update_encoder=True).precision in ('float32', 'bfloat16')

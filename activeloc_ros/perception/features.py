@@ -6,6 +6,7 @@
 of earlier frames: that is `perception.model.SurpriseModel`'s.
 """
 import copy
+import sys
 from typing import Any
 
 import cv2
@@ -14,7 +15,7 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
-from activeloc_ros.errors import ConfigError, FrameError
+from activeloc_ros.errors import ConfigError, FrameError, WeightsError
 from activeloc_ros.perception.config import PerceptionConfig
 from activeloc_ros.perception.encoders import build_encoder, fold_batchnorm, set_conv_padding
 
@@ -101,10 +102,18 @@ class Features:
         if precision == 'int8':
             from activeloc_ros.perception import cache, int8
             side = self.size + 2 * cfg.encoder_pad
-            self.frozen_encoder = int8.load(
-                self.frozen_encoder, name=cfg.encoder, input_shape=(1, 3, side, side),
-                prepare=lambda rgb: self.padded(self.tensor(self.resize(rgb))),
-                threads=torch.get_num_threads(), cache=cache.cache_dir())
+            try:
+                self.frozen_encoder = int8.load(
+                    self.frozen_encoder, name=cfg.encoder, input_shape=(1, 3, side, side),
+                    prepare=lambda rgb: self.padded(self.tensor(self.resize(rgb))),
+                    threads=torch.get_num_threads(), cache=cache.cache_dir())
+            except WeightsError as exc:
+                if cfg.encoder_precision != 'auto':
+                    raise
+                # auto: the int8 encoder is a speed-up; without it, the correct slower run
+                print(f'warning: {exc}; the encoder runs in float32', file=sys.stderr,
+                      flush=True)
+                self.precision = 'float32'
 
     def preprocess(self, frame: np.ndarray) -> torch.Tensor | None:
         """(H, W, 3) RGB 0..255 -> (1, 3, S, S) normalised encoder input; None if not finite."""

@@ -125,10 +125,35 @@ def load(encoder: nn.Module, *, name: str, input_shape: tuple[int, ...],
 def build(encoder: nn.Module, path: Path, *, input_shape: tuple[int, ...],
           prepare: Callable[[np.ndarray], torch.Tensor], stream: TextIO | None = None) -> Path:
     """Quantise `encoder` on the calibration frames and save it as OpenVINO IR at `path`
-    (written into a temporary folder, then moved: never half a model)."""
+    (written into a temporary folder, then moved: never half a model).
+
+    :raises WeightsError: the folder cannot be written (found before the minute of
+        calibration), or the build failed (a full disk, OpenVINO or NNCF).
+    """
+    out = stream or sys.stderr
+    try:                      # a folder it cannot write: found now, not after the minute
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix='.build-'))
+    except OSError as exc:
+        raise WeightsError(f'cannot write the int8 encoder into {path.parent} '
+                           f'({exc.strerror or exc}): make it writable, or set '
+                           'ACTIVELOC_CACHE to a folder that is') from None
+    try:
+        _build_into(tmp, encoder, path, input_shape=input_shape, prepare=prepare, out=out)
+    except (OSError, RuntimeError) as exc:     # a full disk; OpenVINO's and NNCF's failures
+        raise WeightsError(f'building the int8 encoder {path.name} failed: '
+                           f'{type(exc).__name__}: {exc}') from exc
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    print(f'wrote {path}', file=out, flush=True)
+    return path
+
+
+def _build_into(tmp: Path, encoder: nn.Module, path: Path, *, input_shape: tuple[int, ...],
+                prepare: Callable[[np.ndarray], torch.Tensor], out: TextIO) -> None:
+    """`build`'s work, saved in ``tmp`` and moved to ``path``."""
     import nncf
     import openvino
-    out = stream or sys.stderr
     print(f'building the int8 encoder {path.name} (once; about a minute) ...', file=out,
           flush=True)
     inputs = [prepare(rgb).contiguous().numpy() for rgb in calibration_frames()]
@@ -140,14 +165,7 @@ def build(encoder: nn.Module, path: Path, *, input_shape: tuple[int, ...],
         model = openvino.convert_model(encoder.eval(), example_input=torch.from_numpy(inputs[0]))
     with contextlib.redirect_stdout(out):   # NNCF's progress bars: not in a command's output
         quantised = nncf.quantize(model, nncf.Dataset(inputs), subset_size=len(inputs))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix='.build-'))
-    try:
-        openvino.save_model(quantised, tmp / path.name)
-        os.replace(tmp / path.with_suffix('.bin').name, path.with_suffix('.bin'))
-        os.replace(tmp / path.name, path)                   # the .xml last: it marks done
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    print(f'wrote {path}', file=out, flush=True)
-    return path
+    openvino.save_model(quantised, tmp / path.name)
+    os.replace(tmp / path.with_suffix('.bin').name, path.with_suffix('.bin'))
+    os.replace(tmp / path.name, path)                       # the .xml last: it marks done
 
