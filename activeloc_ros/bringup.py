@@ -513,6 +513,16 @@ def _die_with_parent() -> None:
         ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
+def stop_deadline(node: str, args) -> float:
+    """How long a node gets to end after SIGINT before SIGTERM: the arm may take its own
+    ``stop_timeout`` to hold or go home, which must never be cut short."""
+    if node != 'arm':
+        return STOP_DEADLINE_S
+    values = node_values('arm', args.params)
+    values.update(cli_values(args.ros_args))
+    return max(STOP_DEADLINE_S, float(values['stop_timeout']) + 2.0)
+
+
 class Child:
     """One node process, in a session of its own (a terminal's Ctrl-C reaches bringup only,
     which stops the nodes in order) that ends when bringup ends, however it ends."""
@@ -526,6 +536,7 @@ class Child:
             [sys.executable, '-u', '-m', module] + node_arguments(node, args),
             stdout=self.log, stderr=subprocess.STDOUT, env=env, start_new_session=True,
             preexec_fn=_die_with_parent)
+        self.stop_deadline = stop_deadline(node, args)
 
     @property
     def returncode(self):
@@ -533,7 +544,7 @@ class Child:
 
     def stop(self) -> int:
         """SIGINT (the node stops on purpose), then SIGTERM, then SIGKILL, each with a deadline."""
-        for sig, wait in ((signal.SIGINT, STOP_DEADLINE_S), (signal.SIGTERM, 3.0),
+        for sig, wait in ((signal.SIGINT, self.stop_deadline), (signal.SIGTERM, 3.0),
                           (signal.SIGKILL, 3.0)):
             if self.process.poll() is not None:
                 break
@@ -541,6 +552,9 @@ class Child:
             try:
                 self.process.wait(wait)
             except subprocess.TimeoutExpired:
+                print(f'{self.name}: still running {wait:g} s after {sig.name}, which it '
+                      f'did not end on (a hang? its log: {self.log_path})', file=sys.stderr,
+                      flush=True)
                 continue
         self.log.close()
         return self.process.returncode

@@ -204,6 +204,18 @@ def test_a_command_line_parameter_no_node_declares_is_refused_not_ignored(contex
     made.destroy_node()
 
 
+def test_bringup_waits_for_the_arms_own_stop_timeout_before_sigterm(tmp_path):
+    """It sent SIGTERM after 10 s and SIGKILL 3 s later whatever the arm's stop_timeout:
+    an arm going home slowly was killed on the way, its serial link still open."""
+    from activeloc_ros.bringup import parse_args, stop_deadline, STOP_DEADLINE_S
+    assert stop_deadline('arm', parse_args([])) == 12.0     # its default 10 s, and 2 to spare
+    slow = tmp_path / 'slow.yaml'
+    slow.write_text('arm:\n  ros__parameters:\n    stop_timeout: 30.0\n')
+    assert stop_deadline('arm', parse_args(['--params', str(slow)])) == 32.0
+    assert stop_deadline('arm', parse_args(['--ros-args', '-p', 'stop_timeout:=20.0'])) == 22.0
+    assert stop_deadline('perception', parse_args(['--params', str(slow)])) == STOP_DEADLINE_S
+
+
 def test_bringup_gives_each_node_only_the_settings_it_declares():
     from activeloc_ros.bringup import for_node
     ros_args = ['-r', '__ns:=/r1', '-p', 'kp:=0.5', '--param', 'rate:=2.0',
