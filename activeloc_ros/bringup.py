@@ -585,6 +585,7 @@ class InProcessGraph:
             self.nodes[name] = node_class(context=context, cli_args=node_arguments(name, args))
             self.executor.add_node(self.nodes[name])
         self.halt = threading.Event()
+        self.crashed: BaseException | None = None    # what ended the executor's thread
         self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
 
@@ -595,6 +596,19 @@ class InProcessGraph:
                 self.executor.spin_once(timeout_sec=0.05)
         except ExternalShutdownException:
             pass
+        except BaseException as exc:      # a callback's exception ends every node's spin
+            self.crashed = exc
+
+    def failure(self) -> str | None:
+        """Why the graph cannot go on, as a node process's exit code says it: a node that
+        gave up (a camera stream that failed, an arm link down for give_up_timeout), or a
+        callback that raised."""
+        if self.crashed is not None:
+            return f'a node callback raised {type(self.crashed).__name__}: {self.crashed}'
+        for name, node in self.nodes.items():
+            if getattr(node, 'failure', None):
+                return f'{name}: {node.failure}'
+        return None
 
     def camera_finished(self) -> bool:
         return next(iter(self.nodes.values())).finished    # the camera or the sim
@@ -744,6 +758,10 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
                     failed.append(child)
             if failed:
                 reason = f'{failed[0].name} node exited with code {failed[0].returncode}'
+                break
+            if graph is not None and graph.failure():
+                reason = graph.failure()
+                failed.append(None)
                 break
             if not monitor.maps and elapsed > STARTUP_DEADLINE_S:
                 reason = f'no surprise map within {STARTUP_DEADLINE_S:.0f} s'

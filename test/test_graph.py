@@ -247,6 +247,21 @@ def test_echo_hears_a_best_effort_publisher_by_a_relative_name(context, capsys):
     assert 'is no topic name' in capsys.readouterr().err
 
 
+@pytest.mark.parametrize('in_process', [False, True])
+def test_an_arm_link_that_gives_up_fails_the_run_in_either_form(tmp_path, graph_env,
+                                                                in_process):
+    """The arm node gives up on a serial port that never answers. As processes it exits 1;
+    --in-process read no node's failure, so the run went on commanding no arm and ended
+    '(source ended)' with exit code 0."""
+    result = run_bringup('--camera', f'bag:{SAMPLE}', '--arm', f'serial:{tmp_path / "ttyNONE"}',
+                         '--log-dir', str(tmp_path / 'logs'),
+                         *(['--in-process'] if in_process else []),
+                         '--ros-args', '-p', 'give_up_timeout:=3.0', '--',
+                         env=graph_env, timeout=240)
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert 'never connected for 3 s' in result.stdout + result.stderr
+
+
 def write_text_bag(path):
     from activeloc_ros.bag import BagWriter
     writer = BagWriter(path)
