@@ -91,6 +91,22 @@ def test_a_damaged_int8_model_is_a_clear_error(cache):
         make('int8')
 
 
+def test_an_int8_model_damaged_in_the_cache_is_found_by_its_hashes(cache, capsys):
+    """OpenVINO loads a .bin of the right size whatever its bytes: garbage features, no
+    error. A model without its hashes (a build cut short) is built again."""
+    make('int8')
+    binary, = (cache / 'int8').glob('*.bin')
+    binary.write_bytes(bytes(len(binary.read_bytes())))
+    with pytest.raises(WeightsError, match='is damaged .*delete it'):
+        make('int8')
+    assert make('auto').precision == 'float32'            # auto: the slower, correct run
+    hashes, = (cache / 'int8').glob('*.sha256')
+    hashes.unlink()
+    capsys.readouterr()
+    assert make('int8').precision == 'int8'
+    assert 'building the int8 encoder' in capsys.readouterr().err
+
+
 def test_the_cached_model_is_told_apart_by_the_convolutions_padding():
     from activeloc_ros.perception.encoders import set_conv_padding
     encoder = TinyEncoder()

@@ -26,6 +26,7 @@ import torch
 from torch import nn
 
 from activeloc_ros.errors import ConfigError, WeightsError
+from activeloc_ros.paths import file_sha256, write_atomic
 
 CALIBRATION_FRAMES = 128
 NEEDS = 'pip install openvino nncf (setup.py installs both)'
@@ -110,8 +111,14 @@ def load(encoder: nn.Module, *, name: str, input_shape: tuple[int, ...],
         raise WeightsError(f'encoder_precision int8 needs OpenVINO and NNCF: {NEEDS}')
     import openvino
     path = Path(cache) / 'int8' / f'{name}-{cache_key(encoder, input_shape)}.xml'
-    if not path.is_file():
+    if not (path.is_file() and _hashes(path).is_file()):   # (none: an unfinished build)
         build(encoder, path, input_shape=input_shape, prepare=prepare, stream=stream)
+    damaged = [f for f, digest in _read_hashes(path).items()
+               if not (path.parent / f).is_file() or file_sha256(path.parent / f) != digest]
+    if damaged:     # OpenVINO reads a .bin of the right size, whatever its bytes
+        raise WeightsError(f'the int8 encoder {path} is damaged ({", ".join(damaged)} no '
+                           'longer match the hashes written when it was built); delete it '
+                           'and it is built again')
     core = openvino.Core()
     config = {'INFERENCE_NUM_THREADS': max(1, threads), 'PERFORMANCE_HINT': 'LATENCY'}
     try:
@@ -167,5 +174,25 @@ def _build_into(tmp: Path, encoder: nn.Module, path: Path, *, input_shape: tuple
         quantised = nncf.quantize(model, nncf.Dataset(inputs), subset_size=len(inputs))
     openvino.save_model(quantised, tmp / path.name)
     os.replace(tmp / path.with_suffix('.bin').name, path.with_suffix('.bin'))
-    os.replace(tmp / path.name, path)                       # the .xml last: it marks done
+    os.replace(tmp / path.name, path)
+    files = (path.with_suffix('.bin'), path)
+    write_atomic(_hashes(path), ''.join(f'{file_sha256(f)}  {f.name}\n' for f in files))
+    # the hashes last: they mark the build done
+
+
+def _hashes(path: Path) -> Path:
+    """The file of the int8 model's hashes (sha256sum's format) beside its .xml."""
+    return path.with_suffix('.sha256')
+
+
+def _read_hashes(path: Path) -> dict[str, str]:
+    try:
+        lines = _hashes(path).read_text().splitlines()
+    except OSError as exc:
+        raise WeightsError(f'cannot read {_hashes(path)}: {exc.strerror}') from None
+    pairs = [line.split(None, 1) for line in lines if line.strip()]
+    if not pairs or any(len(pair) != 2 for pair in pairs):
+        raise WeightsError(f'{_hashes(path)} is damaged; delete the int8 encoder '
+                           f'{path} and it is built again')
+    return {name.strip(): digest for digest, name in pairs}
 
