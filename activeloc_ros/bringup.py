@@ -343,12 +343,14 @@ def node_params(node: str) -> list:
     return list(importlib.import_module(f'activeloc_ros.nodes.{node}_node').PARAMS)
 
 
-def node_values(node: str, files=()) -> dict:
+def node_values(node: str, files=(), ros_args=()) -> dict:
     """A node's parameter values before it starts: its declared defaults, overlaid with its
-    packaged params files (`paths.packaged_params_files`), then the user's params `files`."""
+    packaged params files (`paths.packaged_params_files`), the user's params `files`, then
+    the ``-p`` settings among ``ros_args``."""
     from activeloc_ros.nodes.ros_params import file_values
     values = {p.name: p.default for p in node_params(node)}
     values.update(file_values(node, [*packaged_params_files(node), *files]))
+    values.update(cli_values(list(ros_args)))
     return values
 
 
@@ -371,8 +373,7 @@ def check_node_params(args) -> None:
         params = node_params(node)
         found = files_problems(node, params, [*packaged_params_files(node), *args.params])
         if not found:
-            values = node_values(node, args.params)
-            values.update(cli_values(args.ros_args))
+            values = node_values(node, args.params, args.ros_args)
             found = validate(params, values) or node_problems(node, values)
         problems += [f'{node}: {p}' for p in found]
     if problems:
@@ -518,8 +519,7 @@ def stop_deadline(node: str, args) -> float:
     ``stop_timeout`` to hold or go home, which must never be cut short."""
     if node != 'arm':
         return STOP_DEADLINE_S
-    values = node_values('arm', args.params)
-    values.update(cli_values(args.ros_args))
+    values = node_values('arm', args.params, args.ros_args)
     return max(STOP_DEADLINE_S, float(values['stop_timeout']) + 2.0)
 
 
