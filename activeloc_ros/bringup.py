@@ -53,6 +53,7 @@ import time
 import numpy as np
 import yaml
 
+from activeloc_ros.checks import argument, finite
 from activeloc_ros.errors import ActivelocError, ConfigError, SourceError
 from activeloc_ros.nodes.messages import stamp_s
 from activeloc_ros.paths import NODE_NAMES, packaged_params_files
@@ -90,17 +91,6 @@ ARM_STALE_S = 2.0             # realtime: no joint_states for this long at the e
 # A node's log line that bringup repeats on its console: errors, not warnings.
 ERROR_LINE = re.compile(r'\[(ERROR|FATAL)\]|^error:|^\w*Error\b|^Traceback')
 MAX_ECHOED = 10               # error lines repeated per node; the rest stay in its log
-
-
-def finite(text: str) -> float:
-    """argparse type: a finite number (`nan` and `inf` are refused)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'not a number: {text!r}') from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f'must be a finite number, got {text!r}')
-    return value
 
 
 def split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
@@ -146,9 +136,10 @@ def parse_args(argv):
                         help='extra ROS 2 params file applied to every node after the '
                              'defaults in params/ (may be repeated)')
     parser.add_argument('--record', type=Path, help='record every topic to this MCAP bag folder')
-    parser.add_argument('--duration', type=finite, default=0.0,
+    parser.add_argument('--duration', type=argument(finite), default=0.0,
                         help='stop after this many seconds (default: when the source ends)')
-    parser.add_argument('--rate', type=finite, default=1.0, help='bag/video replay speed')
+    parser.add_argument('--rate', type=argument(finite), default=1.0,
+                        help='bag/video replay speed')
     parser.add_argument('--loop', action='store_true', help='loop recorded sources')
     parser.add_argument('--in-process', action='store_true',
                         help='run all nodes in this process, in one executor')

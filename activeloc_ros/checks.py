@@ -78,13 +78,19 @@ def argument(check: Check, kind: type = float) -> Callable[[str], Any]:
         try:
             value = kind(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f'not a {kind.__name__}: {text!r}') from None
+            noun = 'whole number' if kind is int else 'number'
+            raise argparse.ArgumentTypeError(f'not a {noun}: {text!r}') from None
         problem = check(value)
         if problem:
             raise argparse.ArgumentTypeError(problem)
         return value
     parse.__name__ = kind.__name__        # argparse names the type in its messages
     return parse
+
+
+def finite(value) -> 'str | None':
+    """Any finite number (`nan` and `inf` are refused)."""
+    return None if math.isfinite(value) else f'must be a finite number, got {value}'
 
 
 positive = above(0)
