@@ -13,6 +13,7 @@ that differ, a position that is not a finite angle in degrees, such as 1e308 rad
 link's health once a second. A serial link down for ``give_up_timeout`` (never connected,
 or lost and not back) ends the node with an error and exit code 1.
 """
+import contextlib
 import math
 import threading
 import time
@@ -160,9 +161,16 @@ class ArmNode(Node):
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
+    @contextlib.contextmanager
+    def _locked(self):
+        """The node's lock, for a callback that moves the arm: first, if the clock ran back,
+        the simulated servos and the stop's ramp go on from the new time (the serial link
+        keeps its own, monotonic, time)."""
+        with self._lock:
+            self._restart_after_rewind()
+            yield
+
     def _restart_after_rewind(self) -> None:
-        """Under the lock: if the clock ran back, the simulated servos and the stop's ramp
-        go on from the new time (the serial link keeps its own, monotonic, time)."""
         jump = self.rewinds.take()
         if jump is None:
             return
@@ -200,8 +208,7 @@ class ArmNode(Node):
     # -- callbacks -------------------------------------------------------------------------
 
     def on_command(self, msg: JointState) -> None:
-        with self._lock:
-            self._restart_after_rewind()
+        with self._locked():
             self._on_command(msg)
 
     def _on_command(self, msg: JointState) -> None:
@@ -283,8 +290,7 @@ class ArmNode(Node):
         self.diagnostics.publish(msg)
 
     def on_state_timer(self) -> None:
-        with self._lock:
-            self._restart_after_rewind()
+        with self._locked():
             if self.stopping:
                 self._stop_step()
                 if self.stop_done():
@@ -341,8 +347,7 @@ class ArmNode(Node):
             to an executor that another thread spins (an in-process graph): then its timers
             do the work and this call only waits.
         """
-        with self._lock:
-            self._restart_after_rewind()
+        with self._locked():
             self.begin_stop()
         timeout = self.values['stop_timeout']
         try:

@@ -22,6 +22,7 @@ forward rule), and publishes ``cmd_vel`` (geometry_msgs/Twist) in place of
 limits, confirmation; the base's forward rule) is refused at run time, and named with a
 warning when set at start, rather than silently ignored.
 """
+import contextlib
 import math
 import threading
 
@@ -252,8 +253,15 @@ class ControllerNode(Node):
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
+    @contextlib.contextmanager
+    def _locked(self):
+        """The node's lock, for a callback that touches the core: first, if the clock ran
+        back, the core starts over at the new time."""
+        with self._lock:
+            self._restart_after_rewind()
+            yield
+
     def _restart_after_rewind(self) -> None:
-        """Under the lock: if the clock ran back, the core starts over at the new time."""
         jump = self.rewinds.take()
         if jump is None:
             return
@@ -289,8 +297,7 @@ class ControllerNode(Node):
         self._log_state()
 
     def on_joint_states(self, msg: JointState) -> None:
-        with self._lock:
-            self._restart_after_rewind()
+        with self._locked():
             self._on_joint_states(msg)
 
     def _on_joint_states(self, msg: JointState) -> None:
@@ -309,8 +316,7 @@ class ControllerNode(Node):
         """The base's pose (x, y, heading) at the message's stamp."""
         q = msg.pose.pose.orientation
         heading = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
-        with self._lock:
-            self._restart_after_rewind()
+        with self._locked():
             self.core.observe((msg.pose.pose.position.x, msg.pose.pose.position.y, heading),
                               stamp_s(msg.header.stamp) or self._now())
             self._answer_early()
@@ -319,8 +325,7 @@ class ControllerNode(Node):
         """The box (two corners, px) of what is at the location of the same stamp."""
         box = region_box(msg)
         if box is not None:
-            with self._lock:
-                self._restart_after_rewind()
+            with self._locked():
                 self._regions[stamp_ns(msg.header.stamp)] = box
                 while len(self._regions) > 20:
                     del self._regions[min(self._regions)]
@@ -332,10 +337,9 @@ class ControllerNode(Node):
             self._answer(early)
 
     def on_location(self, msg: PointStamped) -> None:
-        with self._lock:
+        with self._locked():
             if self.stopped:
                 return
-            self._restart_after_rewind()
             if self.sim_time and not self._pose_known(msg):
                 if self._early is not None:   # its state never came: answer it as it is
                     self._answer(self._early)
@@ -374,8 +378,7 @@ class ControllerNode(Node):
             self.ignored_pub.publish(msg)
 
     def on_watchdog(self) -> None:
-        with self._lock:
-            self._restart_after_rewind()
+        with self._locked():
             command = None if self.stopped else self.core.tick(self._now())
             if command is not None:
                 self._publish(command, self.get_clock().now().to_msg())
@@ -394,9 +397,8 @@ class ControllerNode(Node):
     def stop_on_purpose(self) -> None:
         """Stop the arm where it is, on purpose, make sure the command went out, and send
         no more (safe to call while another thread spins the node)."""
-        with self._lock:
+        with self._locked():
             self.stopped = True
-            self._restart_after_rewind()
             command = self.core.hold(self._now())
             self._publish(command, self.get_clock().now().to_msg())
         self.publisher.wait_for_all_acked(Duration(seconds=0.5))
