@@ -30,10 +30,10 @@ from dataclasses import dataclass, field
 import math
 import statistics
 
+from activeloc_ros.checks import field_types
 from activeloc_ros.control.geometry import angular_error, Intrinsics
 from activeloc_ros.control.pd import PDConfig, PDController
 from activeloc_ros.control.reactive import LatencyStats, location_problem
-from activeloc_ros.checks import field_types
 from activeloc_ros.errors import ConfigError
 
 FORWARD_RULES = ('ground', 'size', 'constant', 'none')

@@ -9,11 +9,11 @@ from dataclasses import dataclass, field
 import math
 from typing import Sequence
 
+from activeloc_ros.checks import field_types
 from activeloc_ros.control.braccio import (
     ArmMapping, check_pose, clamp_to_limits, JointGuard, speed_deg_s)
 from activeloc_ros.control.geometry import angular_error, Intrinsics
 from activeloc_ros.control.pd import PDConfig, PDController
-from activeloc_ros.checks import field_types
 from activeloc_ros.errors import ConfigError
 
 

@@ -28,9 +28,9 @@ import tempfile
 import numpy as np
 
 from activeloc_ros import metrics
+from activeloc_ros.checks import field_types, is_number
 from activeloc_ros.control.base import BaseConfig, BaseController, Twist
 from activeloc_ros.control.geometry import Intrinsics
-from activeloc_ros.checks import field_types, is_number
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.tracking import reward as rewards
 from activeloc_ros.tracking.people import Behaviour, Clip, Person, Walker
