@@ -148,6 +148,12 @@ class VideoSource(Source):
         if not ok:
             if self._index == 0:
                 raise SourceError(f'video {self.path} has no readable frame')
+            declared = int(self._capture.get(cv2.CAP_PROP_FRAME_COUNT))
+            if self._index < declared - max(2, declared // 50):
+                # a file cut short (a copy or a recording that died) reads like its end
+                raise SourceError(f'video {self.path} stopped after {self._index} of the '
+                                  f'{declared} frames its header declares: it is cut short '
+                                  'or damaged')
             return None
         self._index += 1
         return Frame(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB),

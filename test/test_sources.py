@@ -196,6 +196,24 @@ def test_video_and_folder_sources(tmp_path):
         open_source('webcam', clock=lambda: 0.0)
 
 
+def test_a_video_cut_short_is_an_error_not_its_end(tmp_path):
+    whole = tmp_path / 'whole.avi'
+    writer = cv2.VideoWriter(str(whole), cv2.VideoWriter_fourcc(*'MJPG'), 10, (64, 48))
+    for i in range(30):
+        writer.write(rgb_frame(seed=i))
+    writer.release()
+    source = open_source(f'video:{whole}', clock=lambda: 0.0)
+    assert sum(1 for _ in iter(source.read, None)) == 30
+    cut = tmp_path / 'cut.avi'
+    cut.write_bytes(whole.read_bytes()[:whole.stat().st_size * 6 // 10])
+    source = open_source(f'video:{cut}', clock=lambda: 0.0)
+    frames = [source.read() for _ in range(5)]
+    assert all(f is not None for f in frames)
+    with pytest.raises(SourceError, match=r'cut.avi stopped after \d+ of the 30 frames'):
+        while source.read() is not None:
+            pass
+
+
 def test_realsense_without_sdk_or_device_is_a_clear_error():
     with pytest.raises(SourceError, match='RealSense|pyrealsense2'):
         open_source('realsense', clock=lambda: 0.0)
