@@ -497,6 +497,7 @@ def _indexed(file: Path) -> bool:
 class ReindexReport:
     messages: int
     lines: list[str]
+    unrecovered: list[str]   # files cut short before their first complete chunk
 
 
 def reindex(path: Path) -> ReindexReport:
@@ -509,7 +510,7 @@ def reindex(path: Path) -> ReindexReport:
     """
     import yaml
     path = Path(path)
-    files, lines = [], []
+    files, lines, unrecovered = [], [], []
     for file in mcap_files(path):
         scan = scan_mcap(file)
         count = sum(scan.counts.values())
@@ -519,6 +520,8 @@ def reindex(path: Path) -> ReindexReport:
             dropped = file.stat().st_size - scan.keep_bytes
             lines.append(f'{file.name}: no index; kept {len(scan.chunks)} complete chunks, '
                          f'{count} messages')
+            if dropped and not scan.chunks:
+                unrecovered.append(file.name)
             if dropped:
                 what = f'{file.name}: the {dropped} bytes after them, an incomplete record,'
                 try:
@@ -534,7 +537,8 @@ def reindex(path: Path) -> ReindexReport:
         tmp.write_text(yaml.safe_dump(info, sort_keys=False))
         tmp.replace(path / 'metadata.yaml')
         lines.append('metadata.yaml written')
-    return ReindexReport(sum(sum(scan.counts.values()) for _, scan in files), lines)
+    return ReindexReport(sum(sum(scan.counts.values()) for _, scan in files), lines,
+                         unrecovered)
 
 
 def format_facts(facts: BagFacts) -> str:
@@ -681,6 +685,11 @@ def main(argv: list[str] | None = None) -> int:
             report = reindex(args.path)
             print('\n'.join(report.lines))
             print(format_facts(bag_facts(args.path)))
+            if report.unrecovered:     # a readable bag, but of nothing that was recorded
+                print(f'error: nothing could be recovered from {", ".join(report.unrecovered)}:'
+                      ' the recording stopped before its first chunk was complete (its bytes '
+                      'are kept in the .incomplete file beside it)', file=sys.stderr)
+                return 1
             return 0
         with tempfile.TemporaryDirectory() as workdir:
             video = args.video

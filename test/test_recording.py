@@ -100,6 +100,21 @@ def test_reindex_cli_leaves_a_complete_bag_as_it_was(tmp_path):
     assert message_count(path) == 3
 
 
+def test_reindex_cli_fails_when_nothing_could_be_recovered(tmp_path):
+    write_bag(tmp_path / 'whole', 45)
+    data = (tmp_path / 'whole' / 'whole.mcap').read_bytes()
+    killed = tmp_path / 'killed'
+    killed.mkdir()
+    (killed / 'killed.mcap').write_bytes(data[:3000])   # in the middle of the first chunk
+    done = subprocess.run([sys.executable, '-m', 'activeloc_ros.bag', 'reindex', str(killed)],
+                          capture_output=True, text=True, cwd=REPO, timeout=60)
+    assert done.returncode == 1, done.stdout
+    assert 'nothing could be recovered from killed.mcap' in done.stderr
+    kept = (killed / 'killed.mcap').read_bytes()
+    tail = (killed / 'killed.mcap.incomplete').read_bytes()
+    assert kept[:3000 - len(tail)] + tail == data[:3000]     # no byte lost
+
+
 def test_reindex_refuses_what_is_not_a_bag(tmp_path):
     (tmp_path / 'x.mcap').write_bytes(b'not an mcap file at all')
     done = subprocess.run([sys.executable, '-m', 'activeloc_ros.bag', 'reindex',
