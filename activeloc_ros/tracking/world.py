@@ -28,7 +28,7 @@ import tempfile
 import numpy as np
 
 from activeloc_ros import metrics
-from activeloc_ros.checks import field_types, is_number
+from activeloc_ros.checks import field_of_view, field_types, is_number
 from activeloc_ros.control.base import BaseConfig, BaseController, Twist
 from activeloc_ros.control.geometry import Intrinsics
 from activeloc_ros.errors import ConfigError
@@ -75,8 +75,9 @@ class TrackingConfig:
             raise ConfigError(f'target_speed must be two numbers (low, high), got {speeds!r}')
         if self.target not in TARGETS:
             raise ConfigError(f'target must be one of {list(TARGETS)}, got {self.target!r}')
-        if not (0 < self.hfov_deg < 170):
-            raise ConfigError(f'hfov_deg must be within 0..170, got {self.hfov_deg}')
+        problem = field_of_view(self.hfov_deg)
+        if problem:
+            raise ConfigError(f'hfov_deg: {problem}')
         if self.width < 16 or self.height < 16:
             raise ConfigError(f'image must be at least 16x16, got {self.width}x{self.height}')
         if self.max_steps < 1 or self.lost_steps < 1:
