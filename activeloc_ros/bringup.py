@@ -205,25 +205,23 @@ def node_arguments(node: str, args) -> list[str]:
         ros_args += ['-p', f'backend:={backend}']
         if port:
             ros_args += ['-p', f'port:={port}']
-    from activeloc_ros.nodes.ros_params import BUILTIN_PARAMS
-    return ros_args + for_node(args.ros_args,
-                               {*BUILTIN_PARAMS, *(p.name for p in node_params(node))})
+    return ros_args + for_node(args.ros_args, {p.name for p in node_params(node)})
 
 
 def for_node(ros_args: list[str], declared: set[str]) -> list[str]:
     """The user's ROS arguments without the ``-p`` rules this node does not declare: each
     rule goes to the nodes it is for (`check_node_params` made sure some node is), as a
     node refuses a rule for a parameter it does not have."""
+    from activeloc_ros.nodes.ros_params import cli_param_rule, undeclared
     out, skip = [], False
     for flag, item in zip(ros_args, [*ros_args[1:], None]):
         if skip:
             skip = False
             continue
-        if flag in ('-p', '--param') and item is not None and ':=' in item:
-            name = item.partition(':=')[0]
-            if ':' not in name and name not in declared:
-                skip = True
-                continue
+        rule = cli_param_rule(flag, item)
+        if rule is not None and undeclared(rule[0], declared):
+            skip = True
+            continue
         out.append(flag)
     return out
 

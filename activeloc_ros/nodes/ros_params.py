@@ -118,12 +118,25 @@ def _declared_type(value) -> 'Parameter.Type | None':
     return Parameter.Type.from_parameter_value(value)
 
 
+def cli_param_rule(flag: str, item: str | None) -> tuple[str, str] | None:
+    """(name, value text) of the command-line pair ``-p name:=value`` (or ``--param``), else
+    None. rcl applies a rule without a node prefix (``node:name:=``) to every node of the
+    process."""
+    if flag in ('-p', '--param') and item is not None and ':=' in item:
+        return item.partition(':=')[::2]
+    return None
+
+
 def cli_param_rules(args: Iterable[str] | None) -> list[tuple[str, str]]:
-    """The ``-p name:=value`` rules of a command line, as (name, value text): rcl applies a
-    rule without a node prefix (``node:name:=``) to every node of the process."""
+    """The ``-p name:=value`` rules of a command line, as (name, value text)."""
     args = list(args or [])
-    return [item.partition(':=')[::2] for flag, item in zip(args, args[1:])
-            if flag in ('-p', '--param') and ':=' in item]
+    return [rule for rule in map(cli_param_rule, args, args[1:]) if rule]
+
+
+def undeclared(name: str, declared: Iterable[str]) -> bool:
+    """Whether a ``-p`` rule for ``name`` sets a parameter that a node declaring ``declared``
+    (and rclpy's own) does not have; a node-prefixed rule is rcl's to route."""
+    return ':' not in name and name not in {*declared, *BUILTIN_PARAMS}
 
 
 def unknown_cli_params(args: Iterable[str] | None, declared: Iterable[str], *,
@@ -133,7 +146,7 @@ def unknown_cli_params(args: Iterable[str] | None, declared: Iterable[str], *,
     known = {*declared, *BUILTIN_PARAMS}
     problems = []
     for name, _ in cli_param_rules(args):
-        if ':' not in name and name not in known:
+        if undeclared(name, known):
             close = difflib.get_close_matches(name, known, n=1)
             problems.append(f'-p {name}: {unknown}'
                             + (f' (did you mean {close[0]!r}?)' if close else ''))
