@@ -748,8 +748,9 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
             if failed:
                 reason = f'{failed[0].name} node exited with code {failed[0].returncode}'
                 break
-            if graph is not None and graph.failure():
-                reason = graph.failure()
+            failure = graph.failure() if graph is not None else None
+            if failure:
+                reason = failure
                 failed.append(None)
                 break
             if not monitor.maps and elapsed > STARTUP_DEADLINE_S:
