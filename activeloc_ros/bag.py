@@ -520,9 +520,9 @@ def reindex(path: Path) -> ReindexReport:
             dropped = file.stat().st_size - scan.keep_bytes
             lines.append(f'{file.name}: no index; kept {len(scan.chunks)} complete chunks, '
                          f'{count} messages')
-            if dropped and not scan.chunks:
-                unrecovered.append(file.name)
             if dropped:
+                if not scan.chunks:
+                    unrecovered.append(file.name)
                 what = f'{file.name}: the {dropped} bytes after them, an incomplete record,'
                 try:
                     lines.append(f'{what} moved to {_keep_tail(file, scan.keep_bytes).name}')
