@@ -79,6 +79,7 @@ GRAPH_TOPICS = {
 TRACKING_TOPICS = {             # and those of the tracking world (--world tracking:SCENE)
     'cmd_vel': 'geometry_msgs/msg/Twist',
     'odom': 'nav_msgs/msg/Odometry',
+    'scan': 'sensor_msgs/msg/LaserScan',
     'target/position': 'geometry_msgs/msg/PointStamped',
 }
 STARTUP_DEADLINE_S = 180.0    # model and weights load before the first map

@@ -237,6 +237,9 @@ def run_episode(world, pointer: Pointer, *, controller,
             world.apply(cmd, when)
         pending[:] = [p for p in pending if p[0] > t]
         ctl.observe(world.advance(t), t)
+        scan = world.scan()
+        if scan is not None:
+            ctl.observe_scan(scan)
         processed = False
         view = world.observe()                 # a dropped frame may still wait in the queue
         if view is not None and (mode == 'lockstep' or busy_until <= t):

@@ -10,6 +10,7 @@ on the virtual screen (`screen.VirtualScreen`), seen by a camera the simulated B
     for t in world.times():          # scene frame i is shown at t_i = i / fps
         world.apply(command, when)   # commands that reach the arm by t
         joints = world.advance(t)    # the arm moves to t
+        scan = world.scan()          # its range sensor's reading (the arm has none: None)
         view = world.observe()       # a camera capture, when one is due
         world.score(record, ...)     # the frame's scores
 """
@@ -123,6 +124,10 @@ class ScreenWorld:
         joints = self.arm.advance(t)
         self.pan, self.tilt = self.screen.pan_tilt(joints)
         return joints
+
+    def scan(self) -> None:
+        """The arm has no range sensor (`tracking.world.TrackingWorld.scan`)."""
+        return None
 
     def _actors(self) -> np.ndarray:
         """(N, 2) scene pixels of the annotated actors' centres."""

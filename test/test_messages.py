@@ -4,11 +4,14 @@ import math
 import numpy as np
 import pytest
 from sensor_msgs.msg import JointState
+from std_msgs.msg import Header
 
 from activeloc_ros.control import JOINT_NAMES
+from activeloc_ros.control.base import Scan
+from activeloc_ros.errors import ConfigError
 from activeloc_ros.nodes.messages import (
-    arm_joints_deg, joint_state, region_box, region_message, stamp_ns, stamp_s, time_from_ns,
-    time_from_s)
+    arm_joints_deg, joint_state, region_box, region_message, scan_from, scan_message, stamp_ns,
+    stamp_s, time_from_ns, time_from_s)
 
 
 def test_stamps_round_trip_in_nanoseconds_and_seconds():
@@ -55,3 +58,17 @@ def test_a_blob_box_crosses_the_wire_unchanged(image_wh):
         wire = serialize_message(region_message(box, PolygonStamped().header))
         assert region_box(deserialize_message(wire, PolygonStamped)) == box
     assert region_box(PolygonStamped()) is None
+
+
+def test_a_range_scan_crosses_the_wire_with_no_return_as_inf():
+    angles = np.linspace(-math.pi, math.pi, 8, endpoint=False)
+    ranges = np.array([1.0, np.inf, 2.5, 0.0, 3.75, np.inf, 0.5, 1.25])   # float32 on the wire
+    msg = scan_message(Scan(angles, ranges, 1.5), max_range=4.0, header=Header())
+    back = scan_from(msg, 1.5)
+    assert np.allclose(back.angles, angles) and np.array_equal(back.ranges, ranges)
+    msg.ranges[0] = float('nan')            # a driver's "no reading", and one past its range
+    msg.ranges[1] = 7.0
+    assert np.all(np.isinf(scan_from(msg, 1.5).ranges[:2]))
+    msg.angle_max = 1.0                     # angles that do not fit the ranges
+    with pytest.raises(ConfigError, match='angle_max'):
+        scan_from(msg, 1.5)

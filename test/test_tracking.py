@@ -12,10 +12,12 @@ import pytest
 from activeloc_ros.bench import tracking as bench
 from activeloc_ros.bench.pointers import ModelPointer, OraclePointer
 from activeloc_ros.closed_loop import FrameRecord, Pointing, run_episode
-from activeloc_ros.control.base import BaseConfig, BaseController, Twist
+from activeloc_ros.control.base import (
+    BaseConfig, BaseController, clear_direction, Scan, Twist)
 from activeloc_ros.control.pd import PDConfig
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.tracking import reward
+from activeloc_ros.tracking.scenes import Plan
 from activeloc_ros.tracking.world import TrackingConfig, TrackingWorld
 from conftest import REPO
 
@@ -130,6 +132,67 @@ def test_discrete_actions_are_advat_seven():
         BaseConfig(actions='joystick')
 
 
+@pytest.mark.parametrize('x, y, degrees, expected', [
+    (0.0, 0.0, 0.0, 1.5),          # the post's near side: 2 m away, 0.5 m radius
+    (0.0, 0.5, 0.0, 2.0),          # grazing it
+    (0.0, 0.6, 0.0, 5.0),          # past it, to the wall
+    (0.0, 0.0, 90.0, 4.0),         # the walls
+    (0.0, 0.0, 135.0, 4.0 * math.sqrt(2)),
+    (2.0, 0.2, 0.0, 0.0),          # inside the post
+    (-1.0, 0.0, 0.0, 2.5),         # a person (radius 0.3) at (1.8, 0)
+])
+def test_the_range_sensor_reads_the_plan_the_base_bumps_into(x, y, degrees, expected):
+    plan = Plan((-5.0, -4.0, 5.0, 4.0), [(2.0, 0.0, 0.5)])
+    movers = [(1.8, 0.0, 0.3)] if x < 0 else []
+    ranges = plan.ranges(x, y, np.radians([degrees]), max_range=10.0, movers=movers)
+    assert ranges[0] == pytest.approx(expected)
+    far = plan.ranges(x, y, np.radians([degrees]), max_range=expected - 0.01, movers=movers)
+    assert expected == 0.0 or far[0] == math.inf       # nothing within range: inf
+
+
+def wall_scan(distance: float, half_width: float, t: float = 0.0) -> Scan:
+    """A scan of a post ``distance`` m straight ahead, ``half_width`` m each side."""
+    angles = np.radians(np.arange(-180.0, 180.0, 1.0))
+    with np.errstate(divide='ignore'):
+        ranges = distance / np.cos(angles)
+    hit = (np.cos(angles) > 0) & (np.abs(distance * np.tan(angles)) <= half_width)
+    return Scan(angles, np.where(hit, ranges, np.inf), t)
+
+
+def test_a_path_round_an_obstacle_is_the_clear_one_nearest_the_action():
+    post = wall_scan(1.0, 0.15)
+    options = dict(reach=1.5, radius=0.45, max_detour=math.radians(40))
+    assert clear_direction(wall_scan(2.0, 0.15), 0.1, 0.1, **options) == 0.1   # out of reach
+    left = clear_direction(post, 0.05, 0.05, **options)
+    right = clear_direction(post, -0.05, -0.05, **options)
+    # the corridor clears the post's corner (1, 0.15) by its radius from 34.9 deg on
+    edge = math.atan2(0.15, 1.0) + math.asin(0.45 / math.hypot(1.0, 0.15))
+    for h in (left, right):
+        assert edge - math.radians(1) <= abs(h) <= math.radians(40) + 0.05
+    assert left > 0 > right       # round the side nearer the action
+    assert clear_direction(wall_scan(1.0, 2.0), 0.0, 0.0, **options) is None
+
+
+def test_the_base_goes_round_an_obstacle_while_keeping_the_action_in_view():
+    blocked = controller()
+    blocked.observe_scan(wall_scan(1.0, 0.15, t=0.1))
+    ahead = controller().on_location(160, 120, 0.1, 0.1)
+    round_it = blocked.on_location(160, 120, 0.1, 0.1)
+    assert ahead.twist.turn == 0.0 and abs(round_it.twist.turn) == pytest.approx(
+        math.radians(90))                              # turning away at its top rate
+    assert round_it.twist.forward == ahead.twist.forward > 0
+    wall = controller()
+    wall.observe_scan(wall_scan(1.0, 2.0, t=0.1))
+    assert wall.on_location(160, 120, 0.1, 0.1).twist.forward == 0.0   # nowhere to go
+    for off in (controller(avoid=False), controller()):
+        off.observe_scan(wall_scan(1.0, 2.0, t=0.1 - 5.0))    # the second: a stale scan
+        assert off.on_location(160, 120, 0.1, 0.1).twist == ahead.twist
+    with pytest.raises(ConfigError, match='scan'):
+        controller().observe_scan(Scan(np.zeros(3), np.zeros(2), 0.0))
+    with pytest.raises(ConfigError, match='avoid_max_deg'):
+        BaseConfig(avoid_max_deg=120.0)
+
+
 def test_world_is_reproducible_from_its_seed_and_starts_with_the_target_ahead():
     with TrackingWorld('room', 3, SHORT) as a, TrackingWorld('room', 3, SHORT) as b, \
             TrackingWorld('room', 4, SHORT) as c:
@@ -144,6 +207,10 @@ def test_world_is_reproducible_from_its_seed_and_starts_with_the_target_ahead():
         assert distance == pytest.approx(2.5) and bearing == pytest.approx(0.0, abs=1e-9)
         x, y, w, h = views[0].truth_box
         assert abs(x + w / 2 - 160) < 20 and h > 60      # a person, in the middle
+        scan = a.scan()                                  # and, to the range sensor, 2.5 m
+        ahead = np.argmin(np.abs(scan.angles))           # ahead, less her radius
+        assert scan.ranges[ahead] == pytest.approx(2.5 - 0.3, abs=0.01)
+        assert scan.angles[0] == -math.pi and len(scan.ranges) == a.config.scan_rays
 
 
 def test_world_moves_the_base_and_ends_an_episode_once_the_target_is_lost():
@@ -269,6 +336,7 @@ def test_bringup_runs_the_tracking_world_in_lockstep_as_the_benchmark_does(tmp_p
     # every step's odometry and target (depth 10); cmd_vel is shallow (depth 1, as commands
     # should be), so a recorder busy writing images may miss some under load
     assert counts['/odom'] == steps and counts['/target/position'] == steps
+    assert counts['/scan'] == steps
     assert counts['/cmd_vel'] >= 1
     graph = [(m.pose.pose.position.x, m.pose.pose.position.y) for m in odom]
 

@@ -21,7 +21,14 @@ The speed is ``distance_gain`` times the distance error, within ``-max_reverse``
 ``max_speed``: a target nearer than ``distance`` makes the base back away, so a person who
 turns back is not lost past the edge of the view (README, active tracking); without a box
 the base keeps ``pace``. It slows as cos(bearing error): it turns first, then goes. No
-location for ``watchdog_timeout`` s stops the base. ``actions: discrete`` snaps each command
+location for ``watchdog_timeout`` s stops the base.
+
+Going round obstacles (``avoid``, our addition too: the paper's reactive agent has no
+planner, and a base that drives straight at the person runs into a tree between them and
+stays pinned there, README): with a planar range scan (`Scan`), a base going forward heads
+for the direction nearest the PD's that leaves a corridor ``avoid_radius`` wide on each
+side clear for ``avoid_reach`` m, looking no more than ``avoid_max_deg`` away from the
+action so that it stays in view; when every such direction is blocked it only turns. ``actions: discrete`` snaps each command
 to AD-VAT's seven actions (stop, forward, backward, turn left or right, forward and turn
 left or right).
 All times are explicit arguments in seconds; nothing here reads a clock.
@@ -29,6 +36,8 @@ All times are explicit arguments in seconds; nothing here reads a clock.
 from dataclasses import dataclass, field
 import math
 import statistics
+
+import numpy as np
 
 from activeloc_ros.checks import field_types
 from activeloc_ros.control.geometry import angular_error, Intrinsics
@@ -48,6 +57,37 @@ class Twist:
 
 
 @dataclass(frozen=True)
+class Scan:
+    """A planar range scan from the base: ``ranges`` (m; inf: nothing within range) along
+    ``angles`` (radians from the base's heading, > 0 left), taken at ``t`` (s)."""
+    angles: np.ndarray
+    ranges: np.ndarray
+    t: float
+
+
+def clear_direction(scan: Scan, want: float, action: float, *, reach: float, radius: float,
+                    max_detour: float, resolution: float = math.radians(2.0)
+                    ) -> float | None:
+    """The direction (radians from the heading) nearest ``want`` whose corridor, ``radius``
+    m to each side and ``reach`` m long, holds no scan return, among the directions at most
+    ``max_detour`` from ``action`` (the action's direction); None when all are blocked."""
+    seen = np.isfinite(scan.ranges)
+    px = scan.ranges[seen] * np.cos(scan.angles[seen])
+    py = scan.ranges[seen] * np.sin(scan.angles[seen])
+    steps = int(max_detour // resolution)
+    candidates = action + resolution * np.arange(-steps, steps + 1)
+    candidates = candidates[np.argsort(np.abs(candidates - want), kind='stable')]
+    if abs(want - action) <= max_detour:
+        candidates = np.concatenate([[want], candidates])
+    for h in candidates:
+        along = px * math.cos(h) + py * math.sin(h)
+        across = -px * math.sin(h) + py * math.cos(h)
+        if not np.any((along > 0) & (along <= reach) & (np.abs(across) < radius)):
+            return float(h)
+    return None
+
+
+@dataclass(frozen=True)
 class BaseConfig:
     """Everything the base controller needs besides the intrinsics.
 
@@ -61,6 +101,12 @@ class BaseConfig:
     :param min_peak: as the arm controller's: a weaker map carries no information.
     :param discrete_speed: forward speed (m/s) of AD-VAT's moving actions.
     :param discrete_turn_deg_s: turn rate of its turning actions.
+    :param avoid: go round obstacles the range scan shows (needs scans: `observe_scan`).
+    :param avoid_reach: how far ahead the path must be clear, m.
+    :param avoid_radius: half the width of the clear path, m (the base's radius and a
+        margin).
+    :param avoid_max_deg: the farthest the base heads from the action's direction to go
+        round an obstacle (the camera sees 45 deg each side).
     """
 
     pd: PDConfig = field(default_factory=PDConfig)
@@ -80,13 +126,18 @@ class BaseConfig:
     actions: str = 'continuous'
     discrete_speed: float = 1.0
     discrete_turn_deg_s: float = 30.0
+    avoid: bool = True
+    avoid_reach: float = 1.5
+    avoid_radius: float = 0.45
+    avoid_max_deg: float = 40.0
 
     def __post_init__(self):
         problem = field_types(self)
         if problem:
             raise ConfigError(problem)
         for name in ('step', 'max_speed', 'max_turn_deg_s', 'watchdog_timeout',
-                     'discrete_speed', 'discrete_turn_deg_s', 'camera_height', 'distance'):
+                     'discrete_speed', 'discrete_turn_deg_s', 'camera_height', 'distance',
+                     'avoid_reach', 'avoid_radius'):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f'{name} must be > 0, got {value}')
@@ -98,6 +149,8 @@ class BaseConfig:
             raise ConfigError(f'camera_tilt_deg must be within +-90, got {self.camera_tilt_deg}')
         if self.size_frames < 1:
             raise ConfigError(f'size_frames must be >= 1, got {self.size_frames}')
+        if not (math.isfinite(self.avoid_max_deg) and 0 <= self.avoid_max_deg <= 90):
+            raise ConfigError(f'avoid_max_deg must be within 0-90, got {self.avoid_max_deg}')
         if math.isnan(self.min_peak):
             raise ConfigError('min_peak must not be NaN')
         if self.forward not in FORWARD_RULES:
@@ -129,6 +182,7 @@ class BaseController:
         self.commands = 0
         self.yaw: list[tuple[float, float]] = []     # (t, heading) odometry, newest last
         self.sizes: list[float] = []
+        self.scan: Scan | None = None
         self.latency = LatencyStats()
         self._last_capture = -math.inf
         self._last_accept = t0
@@ -164,11 +218,21 @@ class BaseController:
                 heading = last + math.remainder(heading - last, math.tau)
             self.yaw = [s for s in self.yaw if s[0] > t - 2.0] + [(t, heading)]
 
+    def observe_scan(self, scan: Scan) -> None:
+        """The base's newest range scan (a malformed or non-finite-stamped one is refused)."""
+        angles, ranges = np.asarray(scan.angles, float), np.asarray(scan.ranges, float)
+        if angles.shape != ranges.shape or angles.ndim != 1 or not math.isfinite(scan.t) \
+                or not np.all(np.isfinite(angles)) or np.any(np.isnan(ranges)):
+            raise ConfigError('a scan needs as many finite angles as ranges (no NaN) and a '
+                              'finite time')
+        self.scan = Scan(angles, ranges, float(scan.t))
+
     def restart(self, t_now: float) -> None:
         """The clock ran back to ``t_now``: forget the odometry's times, the last location and
         the PD's derivative (as `ReactiveController.restart`). Without this the watchdog
         never stopped a moving base until the clock was back where it was."""
         self.yaw = []
+        self.scan = None
         self.pd.reset()
         self._last_capture = -math.inf
         self._last_accept = t_now
@@ -202,8 +266,18 @@ class BaseController:
         change, _ = self.pd.update((error, 0.0), t_capture, camera=(heading, 0.0))
         max_turn = math.radians(cfg.max_turn_deg_s)
         turn = 0.0 if self.pd.within_dead_band((error, 0.0)) else change / cfg.step
-        turn = min(max(turn, -max_turn), max_turn)
         forward = max(math.cos(error), 0.0) * self._speed(box)
+        if cfg.avoid and forward > 0 and self.scan is not None \
+                and t_now - self.scan.t <= cfg.watchdog_timeout:
+            want = turn * cfg.step
+            way = clear_direction(self.scan, want, error, reach=cfg.avoid_reach,
+                                  radius=cfg.avoid_radius,
+                                  max_detour=math.radians(cfg.avoid_max_deg))
+            if way is None:
+                forward = 0.0                        # nowhere to go: only turn
+            elif way != want:
+                turn = way / cfg.step
+        turn = min(max(turn, -max_turn), max_turn)
         return self._emit(Twist(forward, turn), t_now, 'track', t_capture)
 
     def distance_to(self, box: tuple) -> float | None:

@@ -16,8 +16,9 @@ loop with its ``/clock``; `nodes.clock`) restarts the core from its last command
 warning.
 
 With ``actuator: base`` (`control.base`) it subscribes ``odom`` (nav_msgs/Odometry) in place
-of ``joint_states`` and ``action_region`` (the box of what is at the location, for the
-forward rule), and publishes ``cmd_vel`` (geometry_msgs/Twist) in place of
+of ``joint_states``, ``action_region`` (the box of what is at the location, for the
+forward rule) and ``scan`` (sensor_msgs/LaserScan, in the base's frame: to go round
+obstacles), and publishes ``cmd_vel`` (geometry_msgs/Twist) in place of
 ``joint_commands``. A setting only the other actuator reads (the arm's settle time, aim
 limits, confirmation; the base's forward rule) is refused at run time, and named with a
 warning when set at start, rather than silently ignored.
@@ -31,7 +32,7 @@ from nav_msgs.msg import Odometry
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, JointState
+from sensor_msgs.msg import CameraInfo, JointState, LaserScan
 
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
 from activeloc_ros.control import (
@@ -42,7 +43,7 @@ from activeloc_ros.control.pd import DERIVATIVE_MODES
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.nodes.clock import Rewinds
 from activeloc_ros.nodes.messages import (
-    arm_joints_deg, joint_state, region_box, stamp_ns, stamp_s)
+    arm_joints_deg, joint_state, region_box, scan_from, stamp_ns, stamp_s)
 from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
 from activeloc_ros.nodes.settings import MAPPING_PARAMS, mapping_from
 
@@ -103,6 +104,13 @@ PARAMS = (
           "base: the camera's tilt above the horizon, degrees", in_range(-89.0, 89.0)),
     Param('actions', BaseConfig.actions, "base: 'continuous' or AD-VAT's seven 'discrete' "
           'actions', one_of(*ACTION_SETS)),
+    Param('avoid', BaseConfig.avoid, 'base: go round obstacles the range scan (scan) shows'),
+    Param('avoid_reach', BaseConfig.avoid_reach, 'base: how far ahead the path must be clear, '
+          'm', positive),
+    Param('avoid_radius', BaseConfig.avoid_radius, 'base: half the width of the clear path, m',
+          positive),
+    Param('avoid_max_deg', BaseConfig.avoid_max_deg, 'base: the farthest to head from the '
+          'action to go round an obstacle, degrees', in_range(0.0, 90.0)),
     Param('latency_report_period', 10.0, 'Log frame-to-command latency p50/p95 every this '
           'many seconds (0: only at shutdown)', non_negative, read_only=True),
 )
@@ -127,7 +135,8 @@ def config_from(values: dict) -> ControllerConfig:
 
 
 BASE_PARAMS = ('forward', 'distance', 'distance_gain', 'pace', 'max_speed', 'max_reverse',
-               'max_turn_deg_s', 'camera_height', 'camera_tilt_deg', 'actions')
+               'max_turn_deg_s', 'camera_height', 'camera_tilt_deg', 'actions', 'avoid',
+               'avoid_reach', 'avoid_radius', 'avoid_max_deg')
 # the settings only the arm's controller reads (its joint mapping and servo speed are
 # read-only besides)
 ARM_PARAMS = ('settle_time', 'confirm_deg', 'pan_limit_deg', 'tilt_limit_deg', 'step_delay_ms',
@@ -216,6 +225,8 @@ class ControllerNode(Node):
                                      QoSProfile(depth=10, reliability=inputs))
             self.create_subscription(PolygonStamped, 'action_region', self.on_region,
                                      QoSProfile(depth=10, reliability=inputs))
+            self.create_subscription(LaserScan, 'scan', self.on_scan,
+                                     QoSProfile(depth=1, reliability=inputs))
         else:
             self.publisher = self.create_publisher(JointState, 'joint_commands', commands)
             self.create_subscription(JointState, 'joint_states', self.on_joint_states,
@@ -230,7 +241,8 @@ class ControllerNode(Node):
         pd, c = self.config.pd, self.config
         variant = self.get_parameter('pd_variant').value
         limits = (f'base: forward {c.forward}, distance {c.distance:g} m, top speed '
-                  f'{c.max_speed:g} m/s and {c.max_turn_deg_s:g} deg/s, {c.actions} actions'
+                  f'{c.max_speed:g} m/s and {c.max_turn_deg_s:g} deg/s, {c.actions} actions, '
+                  + ('going round obstacles on scan' if c.avoid else 'not avoiding obstacles')
                   if self.base else
                   f'aim limits pan {c.pan_limit_deg:g} tilt {c.tilt_limit_deg:g} deg')
         self.get_logger().info(
@@ -320,6 +332,15 @@ class ControllerNode(Node):
             self.core.observe((msg.pose.pose.position.x, msg.pose.pose.position.y, heading),
                               stamp_s(msg.header.stamp) or self._now())
             self._answer_early()
+
+    def on_scan(self, msg: LaserScan) -> None:
+        """The base's range scan (`control.base.Scan`)."""
+        try:
+            scan = scan_from(msg, stamp_s(msg.header.stamp) or self._now())
+            with self._locked():
+                self.core.observe_scan(scan)
+        except ConfigError as exc:
+            self.get_logger().warning(f'ignored a scan: {exc}', throttle_duration_sec=5.0)
 
     def on_region(self, msg: PolygonStamped) -> None:
         """The box (two corners, px) of what is at the location of the same stamp."""

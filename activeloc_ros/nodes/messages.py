@@ -4,13 +4,18 @@ the spirit of cv_bridge (images: `images`).
 Stamps: a `builtin_interfaces/Time` (or anything with `sec` and `nanosec`) to and from
 integer nanoseconds or float seconds. Joints: `sensor_msgs/JointState` carries radians; the
 core works in degrees. Regions: a box (x, y, w, h; px) as a `geometry_msgs/PolygonStamped`
-of its two corners. Reading needs no ROS; the message types are imported only to build
+of its two corners. Range scans: a `control.base.Scan` as a `sensor_msgs/LaserScan` (REP
+117: +inf where nothing lies within range). Reading needs no ROS; the message types are imported only to build
 messages.
 """
 import math
 from typing import Sequence
 
+import numpy as np
+
 from activeloc_ros.control import JOINT_NAMES
+from activeloc_ros.control.base import Scan
+from activeloc_ros.errors import ConfigError
 
 
 def stamp_ns(stamp) -> int:
@@ -82,3 +87,32 @@ def arm_joints_deg(msg) -> list[float] | None:
     if len(msg.position) != len(msg.name) or any(n not in index for n in JOINT_NAMES):
         return None
     return [math.degrees(msg.position[index[n]]) for n in JOINT_NAMES]
+
+
+def scan_message(scan: Scan, *, max_range: float, header):
+    """A sensor_msgs/LaserScan of a `Scan` whose rays are evenly spaced, counterclockwise
+    from ``scan.angles[0]`` (ranges beyond ``max_range``: +inf)."""
+    from sensor_msgs.msg import LaserScan
+    angles = scan.angles
+    step = float(angles[1] - angles[0]) if len(angles) > 1 else 0.0
+    return LaserScan(header=header, angle_min=float(angles[0]), angle_max=float(angles[-1]),
+                     angle_increment=step, range_min=0.0, range_max=float(max_range),
+                     ranges=[float(r) for r in scan.ranges])
+
+
+def scan_from(msg, t: float) -> Scan:
+    """The `Scan` of a sensor_msgs/LaserScan taken at ``t`` (s): returns outside
+    [range_min, range_max] are no return (inf); ConfigError for a scan whose angles do not
+    fit its ranges."""
+    ranges = np.asarray(msg.ranges, float)
+    n = len(ranges)
+    if n == 0 or not (math.isfinite(msg.angle_min) and math.isfinite(msg.angle_increment)):
+        raise ConfigError('a LaserScan needs ranges and finite angles')
+    if n > 1 and not math.isclose(msg.angle_min + (n - 1) * msg.angle_increment,
+                                  msg.angle_max, abs_tol=1e-3):
+        raise ConfigError(f'a LaserScan of {n} ranges from {msg.angle_min:.4f} by '
+                          f'{msg.angle_increment:.4f} rad does not end at its angle_max '
+                          f'{msg.angle_max:.4f}')
+    valid = (ranges >= msg.range_min) & (ranges <= msg.range_max)   # NaN: no return either
+    return Scan(msg.angle_min + msg.angle_increment * np.arange(n),
+                np.where(valid, ranges, np.inf), t)

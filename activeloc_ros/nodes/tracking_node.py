@@ -7,7 +7,8 @@ A person walks ahead of a mobile base that carries a camera, in one of the seede
 scenes (room, urban, snow, parking). The node owns the world: it moves the base at
 ``cmd_vel`` (geometry_msgs/Twist: linear.x m/s forward, angular.z rad/s, left positive),
 and publishes ``camera/image_raw``, ``camera/camera_info``, ``odom`` (nav_msgs/Odometry of
-the base in the world frame) and ``target/position`` (geometry_msgs/PointStamped: where the
+the base in the world frame), ``scan`` (sensor_msgs/LaserScan of the base's planar range
+sensor, frame ``base_link``, 360 deg counterclockwise from behind) and ``target/position`` (geometry_msgs/PointStamped: where the
 target really is, for recording), all stamped with the step's time. The episode ends as the
 benchmark's does (`tracking.reward`: 500 steps, or the target lost for 10 in a row); the log
 then gives its AD-VAT scores.
@@ -27,14 +28,15 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, Image, LaserScan
+from std_msgs.msg import Header
 
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
 from activeloc_ros.control.base import Twist as BaseTwist
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.nodes.lockstep import ANSWER, Lockstep, moot_in_lockstep
-from activeloc_ros.nodes.messages import camera_info, stamp_ns, time_from_ns
+from activeloc_ros.nodes.messages import camera_info, scan_message, stamp_ns, time_from_ns
 from activeloc_ros.nodes.ros_params import declare, frame_due, node_help, Param, run
 from activeloc_ros.tracking.scenes import SCENES
 from activeloc_ros.tracking.world import TARGETS, TrackingConfig, TrackingWorld
@@ -87,6 +89,7 @@ class TrackingNode(Node):
         self.image_pub = self.create_publisher(Image, 'camera/image_raw', reliable)
         self.info_pub = self.create_publisher(CameraInfo, 'camera/camera_info', 10)
         self.odom_pub = self.create_publisher(Odometry, 'odom', reliable)
+        self.scan_pub = self.create_publisher(LaserScan, 'scan', 10)
         self.target_pub = self.create_publisher(PointStamped, 'target/position', reliable)
         self.command_sub = self.create_subscription(Twist, 'cmd_vel', self.on_command, reliable)
         self.lockstep = None
@@ -176,7 +179,7 @@ class TrackingNode(Node):
                 self.due = time.monotonic() + self.world.config.step / self.params['rate']
                 if self._step():
                     self.world.advance(self.world.t)
-                    self._publish_odom(self.get_clock().now().to_msg())
+                    self._publish_base(self.get_clock().now().to_msg())
                     self.publish(self.get_clock().now().to_msg())
                     self.world.score_step()
 
@@ -204,10 +207,11 @@ class TrackingNode(Node):
         stamp = time_from_ns(t_ns)
         self.clock_pub.publish(ClockMsg(clock=stamp))
         self.world.advance(self.world.t)
-        self._publish_odom(stamp)
+        self._publish_base(stamp)
         step.begin(t_ns, now)
 
-    def _publish_odom(self, stamp) -> None:
+    def _publish_base(self, stamp) -> None:
+        """The base's odometry and its range scan now."""
         base = self.world.base
         odom = Odometry()
         odom.header.stamp = stamp
@@ -217,6 +221,11 @@ class TrackingNode(Node):
         odom.pose.pose.orientation.z = math.sin(base.heading / 2)
         odom.pose.pose.orientation.w = math.cos(base.heading / 2)
         self.odom_pub.publish(odom)
+        scan = self.world.scan()
+        if scan is not None:
+            self.scan_pub.publish(scan_message(scan, max_range=self.world.config.scan_range,
+                                               header=Header(stamp=stamp,
+                                                             frame_id='base_link')))
 
     def publish(self, stamp) -> None:
         """Render the camera's view now and publish it with the target's true position."""

@@ -52,6 +52,27 @@ class Plan:
                 return x, y
         raise ConfigError(f'no free point {margin} m from every obstacle in {self.bounds}')
 
+    def ranges(self, x: float, y: float, directions: np.ndarray, *, max_range: float,
+               movers: Sequence[tuple[float, float, float]] = ()) -> np.ndarray:
+        """What a planar range sensor at (x, y) measures along ``directions`` (radians, in
+        the plan's frame): the distance to the nearest obstacle, mover or wall, m; inf
+        where nothing lies within ``max_range``. A sensor inside an obstacle reads 0."""
+        dx, dy = np.cos(directions), np.sin(directions)
+        x0, y0, x1, y1 = self.bounds
+        with np.errstate(divide='ignore'):
+            wall_x = np.where(dx > 0, (x1 - x) / dx, np.where(dx < 0, (x0 - x) / dx, np.inf))
+            wall_y = np.where(dy > 0, (y1 - y) / dy, np.where(dy < 0, (y0 - y) / dy, np.inf))
+        hits = np.maximum(np.minimum(wall_x, wall_y), 0.0)
+        circles = np.asarray([*self.obstacles, *movers], float).reshape(-1, 3)
+        for ox, oy, r in circles:
+            along = (ox - x) * dx + (oy - y) * dy           # closest approach along each ray
+            miss2 = (ox - x) ** 2 + (oy - y) ** 2 - along ** 2
+            half = np.sqrt(np.maximum(r * r - miss2, 0.0))
+            entry = np.where((miss2 <= r * r) & (along + half >= 0),
+                             np.maximum(along - half, 0.0), np.inf)
+            hits = np.minimum(hits, entry)
+        return np.where(hits <= max_range, hits, np.inf)
+
     def steer_clear(self, x: float, y: float, heading: float, *, reach: float,
                     movers: Sequence[tuple[float, float, float]] = ()) -> float:
         """``heading``, or the nearest heading (in 15 degree steps) whose path of ``reach`` m

@@ -9,6 +9,7 @@ walk or play clips around. One step is one control period (10 Hz)::
     for t in world.times():          # step i at t_i = i * step, until the episode ends
         world.act(twist, when)       # commands that reach the base by t
         pose = world.advance(t)      # base and people move to t; the base's odometry
+        scan = world.scan()          # its range sensor (`control.base.Scan`)
         view = world.observe()       # the camera's picture, and the target's true box
         world.score(record, ...)     # AD-VAT's reward; counts steps with the target lost
 
@@ -29,7 +30,7 @@ import numpy as np
 
 from activeloc_ros import metrics
 from activeloc_ros.checks import field_of_view, field_types, is_number
-from activeloc_ros.control.base import BaseConfig, BaseController, Twist
+from activeloc_ros.control.base import BaseConfig, BaseController, Scan, Twist
 from activeloc_ros.control.geometry import Intrinsics
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.tracking import reward as rewards
@@ -39,6 +40,8 @@ from activeloc_ros.world import View
 
 TARGETS = ('nav', 'ram')
 DISTRACTOR_CLIPS = ('walk', 'walk', 'dance_a', 'dance_b', 'punch', 'kick', 'jump')
+BASE_RADIUS = 0.3          # m, the base's footprint and a person's, as the bump sees them
+PERSON_RADIUS = 0.3
 
 
 @dataclass(frozen=True)
@@ -49,6 +52,10 @@ class TrackingConfig:
     :param lost_steps: steps in a row with the target lost (r = -1) that end an episode
         (paper 10; gym-unrealcv's code 20).
     :param min_visible_px: fewer target pixels than this is out of view.
+    :param scan_rays: rays of the base's planar range sensor, evenly round 360 deg (a 2D
+        lidar at the base's centre; it sees the obstacles, walls and people that stop the
+        base); 0: no sensor.
+    :param scan_range: the sensor's range, m.
     """
 
     width: int = 320
@@ -65,6 +72,8 @@ class TrackingConfig:
     max_speed: float = 2.0
     max_turn_deg_s: float = 90.0
     min_visible_px: int = 20
+    scan_rays: int = 360
+    scan_range: float = 4.0
 
     def __post_init__(self):
         problem = field_types(self)
@@ -82,8 +91,10 @@ class TrackingConfig:
             raise ConfigError(f'image must be at least 16x16, got {self.width}x{self.height}')
         if self.max_steps < 1 or self.lost_steps < 1:
             raise ConfigError('max_steps and lost_steps must be >= 1')
-        if not (self.step > 0 and self.start_distance > 0):
-            raise ConfigError('step and start_distance must be > 0')
+        if not (self.step > 0 and self.start_distance > 0 and self.scan_range > 0):
+            raise ConfigError('step, start_distance and scan_range must be > 0')
+        if self.scan_rays < 0:
+            raise ConfigError(f'scan_rays must be >= 0, got {self.scan_rays}')
         low, high = speeds
         if not 0 < low <= high:
             raise ConfigError(f'target_speed must be 0 < low <= high, got {self.target_speed}')
@@ -262,9 +273,22 @@ class TrackingWorld:
         b.heading = math.remainder(b.heading + twist.turn * dt, math.tau)
         nx = b.x + twist.forward * dt * math.cos(b.heading)
         ny = b.y + twist.forward * dt * math.sin(b.heading)
-        people = [(w.x, w.y, 0.3) for _, w, _ in self.people]
-        if self.plan.free(nx, ny, 0.3, movers=people):   # a bump stops it, it does not pass
-            b.x, b.y = nx, ny
+        if self.plan.free(nx, ny, BASE_RADIUS, movers=self._movers()):
+            b.x, b.y = nx, ny                   # a bump stops it, it does not pass
+
+    def _movers(self) -> list[tuple[float, float, float]]:
+        return [(w.x, w.y, PERSON_RADIUS) for _, w, _ in self.people]
+
+    def scan(self) -> Scan | None:
+        """The base's range sensor now: ``scan_rays`` rays round it from its heading (None
+        without one)."""
+        cfg, b = self.config, self.base
+        if not cfg.scan_rays:
+            return None
+        angles = np.linspace(-math.pi, math.pi, cfg.scan_rays, endpoint=False)
+        ranges = self.plan.ranges(b.x, b.y, b.heading + angles, max_range=cfg.scan_range,
+                                  movers=self._movers())
+        return Scan(angles, ranges, self.t)
 
     def render(self) -> tuple[np.ndarray, np.ndarray]:
         """The camera's RGB image (H, W, 3) and the segmentation mask (body ids)."""
