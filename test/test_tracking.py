@@ -174,19 +174,22 @@ def test_a_path_round_an_obstacle_is_the_clear_one_nearest_the_action():
 
 
 def test_the_base_goes_round_an_obstacle_while_keeping_the_action_in_view():
-    blocked = controller()
+    blocked = controller(avoid=True)
     blocked.observe_scan(wall_scan(1.0, 0.15, t=0.1))
     ahead = controller().on_location(160, 120, 0.1, 0.1)
     round_it = blocked.on_location(160, 120, 0.1, 0.1)
     assert ahead.twist.turn == 0.0 and abs(round_it.twist.turn) == pytest.approx(
         math.radians(90))                              # turning away at its top rate
     assert round_it.twist.forward == ahead.twist.forward > 0
-    wall = controller()
+    wall = controller(avoid=True)
     wall.observe_scan(wall_scan(1.0, 2.0, t=0.1))
     assert wall.on_location(160, 120, 0.1, 0.1).twist.forward == 0.0   # nowhere to go
-    for off in (controller(avoid=False), controller()):
-        off.observe_scan(wall_scan(1.0, 2.0, t=0.1 - 5.0))    # the second: a stale scan
-        assert off.on_location(160, 120, 0.1, 0.1).twist == ahead.twist
+    off = controller()                                   # the default: the paper's
+    off.observe_scan(wall_scan(1.0, 2.0, t=0.1))
+    stale = controller(avoid=True)
+    stale.observe_scan(wall_scan(1.0, 2.0, t=0.1 - 5.0))  # older than the watchdog's 2 s
+    for ctl in (off, stale):
+        assert ctl.on_location(160, 120, 0.1, 0.1).twist == ahead.twist
     with pytest.raises(ConfigError, match='scan'):
         controller().observe_scan(Scan(np.zeros(3), np.zeros(2), 0.0))
     with pytest.raises(ConfigError, match='avoid_max_deg'):

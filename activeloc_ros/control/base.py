@@ -28,7 +28,9 @@ planner, and a base that drives straight at the person runs into a tree between 
 stays pinned there, README): with a planar range scan (`Scan`), a base going forward heads
 for the direction nearest the PD's that leaves a corridor ``avoid_radius`` wide on each
 side clear for ``avoid_reach`` m, looking no more than ``avoid_max_deg`` away from the
-action so that it stays in view; when every such direction is blocked it only turns. ``actions: discrete`` snaps each command
+action so that it stays in view; when every such direction is blocked it only turns. Off by
+default: the oracle keeps the person far longer with it, but ours' base, reading a person's
+distance from its map's blob less well, takes her for an obstacle and steers round her. ``actions: discrete`` snaps each command
 to AD-VAT's seven actions (stop, forward, backward, turn left or right, forward and turn
 left or right).
 All times are explicit arguments in seconds; nothing here reads a clock.
@@ -126,7 +128,7 @@ class BaseConfig:
     actions: str = 'continuous'
     discrete_speed: float = 1.0
     discrete_turn_deg_s: float = 30.0
-    avoid: bool = True
+    avoid: bool = False
     avoid_reach: float = 1.5
     avoid_radius: float = 0.45
     avoid_max_deg: float = 40.0
