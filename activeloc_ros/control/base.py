@@ -21,7 +21,9 @@ The speed is ``distance_gain`` times the distance error, within ``-max_reverse``
 ``max_speed``: a target nearer than ``distance`` makes the base back away, so a person who
 turns back is not lost past the edge of the view (README, active tracking); without a box
 the base keeps ``pace``. It slows as cos(bearing error): it turns first, then goes. No
-location for ``watchdog_timeout`` s stops the base.
+location for ``watchdog_timeout`` s stops the base. ``actions: discrete`` snaps each command
+to AD-VAT's seven actions (stop, forward, backward, turn left or right, forward and turn
+left or right).
 
 Going round obstacles (``avoid``, our addition too: the paper's reactive agent has no
 planner, and a base that drives straight at the person runs into a tree between them and
@@ -30,9 +32,8 @@ for the direction nearest the PD's that leaves a corridor ``avoid_radius`` wide 
 side clear for ``avoid_reach`` m, looking no more than ``avoid_max_deg`` away from the
 action so that it stays in view; when every such direction is blocked it only turns. Off by
 default: the oracle keeps the person far longer with it, but ours' base, reading a person's
-distance from its map's blob less well, takes her for an obstacle and steers round her. ``actions: discrete`` snaps each command
-to AD-VAT's seven actions (stop, forward, backward, turn left or right, forward and turn
-left or right).
+distance from its map's blob less well, takes her for an obstacle and steers round her.
+
 All times are explicit arguments in seconds; nothing here reads a clock.
 """
 from dataclasses import dataclass, field

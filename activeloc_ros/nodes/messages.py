@@ -5,8 +5,8 @@ Stamps: a `builtin_interfaces/Time` (or anything with `sec` and `nanosec`) to an
 integer nanoseconds or float seconds. Joints: `sensor_msgs/JointState` carries radians; the
 core works in degrees. Regions: a box (x, y, w, h; px) as a `geometry_msgs/PolygonStamped`
 of its two corners. Range scans: a `control.base.Scan` as a `sensor_msgs/LaserScan` (REP
-117: +inf where nothing lies within range). Reading needs no ROS; the message types are imported only to build
-messages.
+117: +inf where nothing lies within range). Reading needs no ROS; the message types are
+imported only to build messages.
 """
 import math
 from typing import Sequence

@@ -8,10 +8,10 @@ scenes (room, urban, snow, parking). The node owns the world: it moves the base 
 ``cmd_vel`` (geometry_msgs/Twist: linear.x m/s forward, angular.z rad/s, left positive),
 and publishes ``camera/image_raw``, ``camera/camera_info``, ``odom`` (nav_msgs/Odometry of
 the base in the world frame), ``scan`` (sensor_msgs/LaserScan of the base's planar range
-sensor, frame ``base_link``, 360 deg counterclockwise from behind) and ``target/position`` (geometry_msgs/PointStamped: where the
-target really is, for recording), all stamped with the step's time. The episode ends as the
-benchmark's does (`tracking.reward`: 500 steps, or the target lost for 10 in a row); the log
-then gives its AD-VAT scores.
+sensor, frame ``base_link``, 360 deg counterclockwise from behind) and ``target/position``
+(geometry_msgs/PointStamped: where the target really is, for recording), all stamped with
+the step's time. The episode ends as the benchmark's does (`tracking.reward`: 500 steps, or
+the target lost for 10 in a row); the log then gives its AD-VAT scores.
 
 In real time the world steps at its control rate (10 Hz, times ``rate``). With ``lockstep``
 (and ``use_sim_time`` on every node) it owns ``/clock`` and steps the graph one control step
@@ -211,7 +211,13 @@ class TrackingNode(Node):
         step.begin(t_ns, now)
 
     def _publish_base(self, stamp) -> None:
-        """The base's odometry and its range scan now."""
+        """The base's range scan and its odometry now: the scan first, as a location waiting
+        for the odometry of its step is answered as soon as that comes."""
+        scan = self.world.scan()
+        if scan is not None:
+            self.scan_pub.publish(scan_message(scan, max_range=self.world.config.scan_range,
+                                               header=Header(stamp=stamp,
+                                                             frame_id='base_link')))
         base = self.world.base
         odom = Odometry()
         odom.header.stamp = stamp
@@ -221,11 +227,6 @@ class TrackingNode(Node):
         odom.pose.pose.orientation.z = math.sin(base.heading / 2)
         odom.pose.pose.orientation.w = math.cos(base.heading / 2)
         self.odom_pub.publish(odom)
-        scan = self.world.scan()
-        if scan is not None:
-            self.scan_pub.publish(scan_message(scan, max_range=self.world.config.scan_range,
-                                               header=Header(stamp=stamp,
-                                                             frame_id='base_link')))
 
     def publish(self, stamp) -> None:
         """Render the camera's view now and publish it with the target's true position."""

@@ -40,8 +40,8 @@ from activeloc_ros.world import View
 
 TARGETS = ('nav', 'ram')
 DISTRACTOR_CLIPS = ('walk', 'walk', 'dance_a', 'dance_b', 'punch', 'kick', 'jump')
-BASE_RADIUS = 0.3          # m, the base's footprint and a person's, as the bump sees them
-PERSON_RADIUS = 0.3
+BASE_RADIUS = 0.3          # m: the base's footprint, as a bump and the range sensor see it
+PERSON_RADIUS = 0.3        # and a person's
 
 
 @dataclass(frozen=True)
