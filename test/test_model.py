@@ -92,6 +92,9 @@ def test_every_field_has_a_default_and_help_and_round_trips():
     ('update_encoder', 1),
     ('motion', 'cubic'),
     ('blur_ksize', 4),
+    ('input_aspect', 0.0),
+    ('input_aspect', 5.0),
+    ('input_aspect', float('inf')),
     ('map_temperature', 0.0),
     ('optimizer', 'lbfgs'),
 ])
@@ -121,10 +124,15 @@ def test_encoder_pad_must_be_whole_cells_smaller_than_the_frame(pad):
 
 
 @pytest.mark.parametrize('pad', [0, 32])
-def test_the_mirrored_border_keeps_the_grid(pad):
-    model = make(real=True, encoder_pad=pad)
+@pytest.mark.parametrize('aspect, wh, grid', [(1.0, (224, 224), (14, 14)),
+                                              (4 / 3, (304, 224), (14, 19)),
+                                              (16 / 9, (400, 224), (14, 25))])
+def test_the_grid_follows_the_input_aspect_and_the_mirrored_border_keeps_it(pad, aspect, wh,
+                                                                            grid):
+    model = make(real=True, encoder_pad=pad, input_aspect=aspect)
     result = [model.step(f) for f in clip(2)][-1]
-    assert model.grid == 14 and result.surprise_map.shape == (14, 14)
+    assert model.input_wh == wh and model.grid == grid and model.cells == grid[0] * grid[1]
+    assert result.surprise_map.shape == grid
 
 
 @pytest.mark.parametrize('encoder', ['efficientnet_lite0', 'vgg19'])
@@ -147,11 +155,11 @@ def test_reflect_conv_padding_gives_a_uniform_picture_the_same_features_in_every
 @pytest.mark.parametrize('real', [True, False])
 def test_first_map_is_uniform_then_a_distribution_with_its_argmax(real):
     model = make(real=real, location='peak', location_prior=0.0)   # the paper's
-    assert model.grid == (14 if real else 8)
+    assert model.grid == ((14, 14) if real else (8, 8))
     frames = clip(4, h=37, w=53)
     first = model.step(frames[0])
-    assert first.surprise_map.shape == (model.grid, model.grid)
-    np.testing.assert_allclose(first.surprise_map, 1 / model.grid ** 2, rtol=1e-6)
+    assert first.surprise_map.shape == model.grid
+    np.testing.assert_allclose(first.surprise_map, 1 / model.cells, rtol=1e-6)
     assert not first.updated and first.lr == 0.0 and first.losses['total'] == 0.0
     for frame in frames[1:]:
         res = model.step(frame)
@@ -160,8 +168,9 @@ def test_first_map_is_uniform_then_a_distribution_with_its_argmax(real):
         assert m.sum() == pytest.approx(1.0, abs=1e-5)
         row, col = res.cell
         assert m[row, col] == m.max() == pytest.approx(res.peak)
-        g = model.grid
-        assert res.location_px == pytest.approx(((col + .5) * 53 / g, (row + .5) * 37 / g))
+        rows, cols = model.grid
+        assert res.location_px == pytest.approx(((col + .5) * 53 / cols,
+                                                 (row + .5) * 37 / rows))
         assert res.updated and res.lr > 0
         assert set(res.losses) == {'global', 'attn', 'total'}
         assert set(res.timings) == {'preprocess', 'encode', 'predict', 'update', 'total'}
@@ -220,7 +229,8 @@ def test_the_region_location_is_the_centre_of_the_blob_round_the_peak():
     {'location': 'region', 'location_region_share': 0.4},
 ])
 def test_the_model_reports_its_location_in_frame_pixels(settings):
-    model = make(**settings)
+    model = make(input_aspect=1.5, **settings)          # the tiny encoder's 96 x 64: 8 x 12
+    assert model.grid == (8, 12)
     frames = clip(3, h=37, w=53)
     for frame in frames:
         res = model.step(frame)
@@ -228,7 +238,7 @@ def test_the_model_reports_its_location_in_frame_pixels(settings):
     x, y = P.action_location(m, settings['location'], model.cfg.location_share,
                              model.cfg.location_prior, model.cfg.location_floor,
                              region_share=model.cfg.location_region_share)
-    assert res.location_px == pytest.approx((x * 53 / model.grid, y * 37 / model.grid))
+    assert res.location_px == pytest.approx((x * 53 / 12, y * 37 / 8))
 
 
 @pytest.mark.parametrize('frame', [
@@ -468,7 +478,7 @@ def test_nan_frame_skips_the_update_and_restarts_the_sequence():
     bad[5, 5, 1] = np.nan
     res = model.step(bad)
     assert res.nan_events == 1 and not res.updated
-    np.testing.assert_allclose(res.surprise_map, 1 / model.grid ** 2, rtol=1e-6)
+    np.testing.assert_allclose(res.surprise_map, 1 / model.cells, rtol=1e-6)
     assert model.state is None and model.x_prev is None
     assert same(before, weights(model))
     first_again = model.step(frames[4])                 # a new first frame, then learning
@@ -547,7 +557,7 @@ def test_an_untrained_residual_predictor_gives_the_motion_weighted_difference_ma
         fa, fb = (feats.to_cells(model.encoder(feats.preprocess(x)))[0] for x in (a, b))
     d = fb - fa
     e = (P.motion_weight(d, motion, 1.0) * d.square()).mean(1)
-    want = torch.softmax(e / 0.5, 0).reshape(model.grid, model.grid).numpy()
+    want = torch.softmax(e / 0.5, 0).reshape(model.grid).numpy()
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)
 
 
@@ -639,19 +649,25 @@ def test_ego_motion_is_estimated_from_the_images():
     from activeloc_ros.perception.egomotion import EgoMotion
     a, b = (cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in panning(2))
     ego = EgoMotion()
-    warp = ego.estimate(ego.keypoints(a), ego.keypoints(b), 224)
+    warp = ego.estimate(ego.keypoints(a), ego.keypoints(b), (224, 224))
     assert warp[:2, :2] == pytest.approx(np.eye(2), abs=0.01)
     assert warp[:2, 2] == pytest.approx([-8.0, 0.0], abs=0.5)    # content moves left
-    assert ego.estimate(ego.keypoints(a), ego.keypoints(a), 224) is None   # no motion
+    assert ego.estimate(ego.keypoints(a), ego.keypoints(a), (224, 224)) is None  # no motion
 
 
-def test_warp_cells_moves_state_with_the_view():
+@pytest.mark.parametrize('dx, dy', [(16.0, 0.0), (0.0, 16.0)])    # one cell right / down
+def test_warp_cells_moves_state_with_the_view(dx, dy):
     from activeloc_ros.perception.egomotion import warp_cells
-    values = torch.arange(16.0).reshape(1, 16, 1)                   # a 4 x 4 grid
-    shift = np.array([[1.0, 0.0, 16.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])  # one cell right
-    moved = warp_cells(values, shift, 64, 4)[0, :, 0].reshape(4, 4)
-    assert moved[:, 0].abs().max() < 1e-4                           # nothing seen there
-    assert moved[:, 1:] == pytest.approx(values[0, :, 0].reshape(4, 4)[:, :3], abs=1e-4)
+    values = torch.arange(12.0).reshape(1, 12, 1)       # a 3 x 4 grid over a 64 x 48 image
+    shift = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+    moved = warp_cells(values, shift, (64, 48), (3, 4))[0, :, 0].reshape(3, 4)
+    grid = values[0, :, 0].reshape(3, 4)
+    if dx:
+        assert moved[:, 0].abs().max() < 1e-4                       # nothing seen there
+        assert moved[:, 1:] == pytest.approx(grid[:, :3], abs=1e-4)
+    else:
+        assert moved[0].abs().max() < 1e-4
+        assert moved[1:] == pytest.approx(grid[:2], abs=1e-4)
 
 
 def test_ego_motion_takes_the_pan_out_of_the_surprise():
@@ -686,10 +702,26 @@ def test_ego_warp_of_the_features_takes_a_whole_cell_pan_out():
 
 def test_ego_warp_of_the_features_fills_the_unseen_edge_with_the_new_frame():
     model = make(real=True, ego_motion='similarity', ego_warp='features')
-    g, n, c = model.grid, model.cells, 3
+    (rows, cols), n, c = model.grid, model.cells, 3
     f_prev = torch.arange(float(n * c)).reshape(n, c)
     f_cur = torch.full((n, c), -1.0)
-    shift = np.array([[1.0, 0.0, -model.size / g], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-    moved = model._warp_features(f_prev, f_cur, shift).reshape(g, g, c)
-    assert moved[:, -1] == pytest.approx(f_cur.reshape(g, g, c)[:, -1], abs=1e-4)
-    assert moved[:, :-1] == pytest.approx(f_prev.reshape(g, g, c)[:, 1:], abs=1e-4)
+    shift = np.array([[1.0, 0.0, -model.input_wh[0] / cols], [0.0, 1.0, 0.0],
+                      [0.0, 0.0, 1.0]])
+    moved = model._warp_features(f_prev, f_cur, shift).reshape(rows, cols, c)
+    assert moved[:, -1] == pytest.approx(f_cur.reshape(rows, cols, c)[:, -1], abs=1e-4)
+    assert moved[:, :-1] == pytest.approx(f_prev.reshape(rows, cols, c)[:, 1:], abs=1e-4)
+
+
+@pytest.mark.parametrize('aspect, frame_wh, warned', [
+    (1.0, (640, 480), True),          # a 4:3 frame squashed into the paper's square
+    (1.0, (500, 480), False),
+    (4 / 3, (640, 480), False),
+    (4 / 3, (1280, 720), True),
+    (16 / 9, (1280, 720), False),
+])
+def test_a_frame_out_of_the_inputs_shape_is_named_with_the_aspect_to_set(aspect, frame_wh,
+                                                                         warned):
+    note = make(real=True, input_aspect=aspect).features.aspect_note(frame_wh)
+    assert (note is not None) == warned
+    if warned:
+        assert 'input_aspect' in note and f'{frame_wh[0] / frame_wh[1]:.4f}' in note

@@ -232,17 +232,20 @@ def test_baselines_on_a_real_static_sequence(capsys):
     assert rows['framediff']['hit_rate'] > rows['random']['hit_rate']
 
 
-def test_real_model_runs_on_a_synthetic_sequence(tmp_path, capsys):
+@pytest.mark.parametrize('aspect', ['1.0', '1.5'])   # a square grid, and a 14 x 21 one
+def test_real_model_runs_on_a_synthetic_sequence(tmp_path, capsys, aspect):
     pytest.importorskip('activeloc_ros.perception.model')
     make_moving_square(tmp_path, 'square', n=3)
     code = passive.main(['--data', str(tmp_path), '--quiet', '--json', '--ablations', 'full',
-                         '--set', 'pretrained=false', 'hidden=8', 'attn_units=8'])
+                         '--set', 'pretrained=false', 'hidden=8', 'attn_units=8',
+                         f'input_aspect={aspect}'])
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert code == 0
     model = rows[-1]
     assert model['method'] == 'model:vgg19/full' and model['frames'] == 2
     assert 0.0 <= model['hit_rate'] <= 1.0 and 0.5 <= model['auc_judd'] <= 1.0
     assert model['config']['pretrained'] is False
+    assert model['config']['input_aspect'] == float(aspect)
 
 
 def test_auc_jitter_breaks_the_ties_of_a_one_hot_map(tmp_path):

@@ -231,9 +231,9 @@ def run_sequence(sequence: data.Sequence, methods: list[Pointer], *, max_frames:
         truth = sample.truth
         view = view_of(sample, sequence.fps, pan=pan, tilt=tilt)
         scored = truth.scored and bool(truth.actors) and sample.index >= warmup
+        fixations = {}       # per map shape: the model's grid follows its input's aspect
         if scored:
             chance.append(metrics.chance_hit_rate(truth.actors, GRID, image_wh))
-            fixations = metrics.fixation_map([b.centre for b in truth.actors], GRID, image_wh)
         for m in methods:
             start = time.perf_counter()
             pointing = m.locate(view)
@@ -244,12 +244,15 @@ def run_sequence(sequence: data.Sequence, methods: list[Pointer], *, max_frames:
                 continue
             heat, point = heat_and_point(pointing, image_wh)
             hit = metrics.is_hit(point, truth.actors, cell_wh=cell_wh)
-            auc = metrics.auc_judd(heat, fixations, jitter=auc_jitter, rng=rng)
+            if heat.shape not in fixations:
+                fixations[heat.shape] = metrics.fixation_map(
+                    [b.centre for b in truth.actors], heat.shape, image_wh)
+            auc = metrics.auc_judd(heat, fixations[heat.shape], jitter=auc_jitter, rng=rng)
             tally.hits.append(hit)
             tally.aucs.append(auc)
             tally.moving.append(moved)
             row, col = metrics.peak_cell(heat)
-            tally.border.append(row in (0, GRID[0] - 1) or col in (0, GRID[1] - 1))
+            tally.border.append(row in (0, heat.shape[0] - 1) or col in (0, heat.shape[1] - 1))
             if frames_out is not None:
                 frames_out.append({'sequence': sequence.name, 'frame': sample.index,
                                    'method': m.name, 'hit': hit, 'auc_judd': auc,

@@ -142,6 +142,7 @@ class PerceptionNode(Node):
         self.diagnostics_timer = self.create_timer(self.params['diagnostics_period'],
                                                    self.publish_diagnostics)
         self.logged_problems = set()
+        self.frame_wh = None              # the size of the frames coming in
         self.nan_events = 0
         how = ('pipelined' if self.pipeline else
                'one step per frame' + (' (the encoder learns)' if self.params['pipeline']
@@ -213,6 +214,12 @@ class PerceptionNode(Node):
 
     def process(self, header, rgb) -> None:
         started = time.monotonic()
+        frame_wh = (rgb.shape[1], rgb.shape[0])
+        if frame_wh != self.frame_wh:      # once per frame size: the encoder input's shape
+            self.frame_wh = frame_wh
+            note = self.model.features.aspect_note(frame_wh)
+            if note:
+                self.get_logger().warning(note)
         captured = stamp_s(header.stamp)
         if self.pipeline is None:  # the map goes out before the optimiser step
             tag = (header, rgb, started)

@@ -34,7 +34,7 @@ class PerceptionConfig:
     # encoder
     encoder: str = _param(
         'vgg19',
-        'CNN encoder to the 14x14 grid. Default vgg19 to pool4: the closest stand-in for the '
+        'CNN encoder to the stride-16 grid. Default vgg19 to pool4: the closest stand-in for the '
         'paper\'s vgg16 pool4 whose ImageNet weights the registries hold; vgg16 needs '
         '`weights`; efficientnet_lite0 is far cheaper and less accurate (README, Measured '
         'defaults)', one_of(*ENCODER_NAMES))
@@ -57,10 +57,17 @@ class PerceptionConfig:
         "paper's, as in ImageNet training) or reflect (mirrored picture at every layer: like "
         'encoder_pad the border cells see no zeros, but at no extra work)',
         one_of('zeros', 'reflect'))
+    input_aspect: float = _param(
+        1.0, 'width over height of the encoder input: its height is the encoder\'s (224), '
+        'its width the multiple of the encoder stride (16) nearest to height x this, and the '
+        'grid has one column per 16 px. 1 = the paper\'s 224 x 224, which squashes a 4:3 '
+        'frame to three quarters of its width; the camera\'s own aspect keeps its picture '
+        'undistorted (4:3, 1.3333: 304 x 224, 14 rows and 19 columns; README, Measured '
+        'defaults)', in_range(0.25, 4.0))
     pretrained: bool = _param(
         True, 'load ImageNet weights; False = random encoder, for unit tests only')
     blur_ksize: int = _param(
-        0, 'Gaussian blur of the 224x224 frame before encoding; 0 = off, 5 = lab code', _blur)
+        0, 'Gaussian blur of the resized frame before encoding; 0 = off, 5 = lab code', _blur)
     feature_norm: str = _param(
         'frame_rms', 'scale of the features the predictor and the losses see: frame_rms '
         '(each frame divided by its RMS over cells and channels, so targets are O(1) whatever '
@@ -112,7 +119,7 @@ class PerceptionConfig:
         'features', 'what the motion d is measured on: features = f_t - f_{t-1} of each '
         'cell, broadcast over nothing (paper Eq. 2); image = the per-cell mean change of '
         'the blurred grey picture against the previous one moved into the new view '
-        '(perception.motion: pixel-accurate, so the 14x14 features\' misregistration under '
+        '(perception.motion: pixel-accurate, so the grid features\' misregistration under '
         'camera motion is no motion), in grey levels scaled by image_motion_scale',
         one_of('features', 'image'))
     image_motion_scale: float = _param(

@@ -40,9 +40,10 @@ class EgoMotion:
     def keypoints(self, gray: np.ndarray):
         return self.orb.detectAndCompute(gray, None)
 
-    def estimate(self, prev, cur, size: int) -> np.ndarray | None:
-        """The 3x3 matrix taking pixels of the previous image to the current one, from
-        their `keypoints`; None when the camera did not move or the motion is unknown."""
+    def estimate(self, prev, cur, image_wh: tuple[int, int]) -> np.ndarray | None:
+        """The 3x3 matrix taking pixels of the previous image to the current one, both
+        `image_wh` (width, height), from their `keypoints`; None when the camera did not
+        move or the motion is unknown."""
         (kp0, des0), (kp1, des1) = prev, cur
         if des0 is None or des1 is None or len(kp0) < MIN_INLIERS or len(kp1) < MIN_INLIERS:
             return None
@@ -59,7 +60,8 @@ class EgoMotion:
             h = None if affine is None else np.vstack([affine, [0.0, 0.0, 1.0]])
         if h is None or inliers is None or int(inliers.sum()) < MIN_INLIERS:
             return None
-        corners = np.float32([[0, 0], [size, 0], [0, size], [size, size]])[:, None]
+        width, height = image_wh
+        corners = np.float32([[0, 0], [width, 0], [0, height], [width, height]])[:, None]
         moved = cv2.perspectiveTransform(corners, h) - corners
         if np.abs(moved).max() <= self.min_shift_px:
             return None
@@ -79,18 +81,23 @@ def warp_image(prev: np.ndarray, h: np.ndarray, cur: np.ndarray) -> np.ndarray:
     return np.where(seen[..., None], warped, cur)
 
 
-def warp_cells(values: torch.Tensor, h: np.ndarray, size: int, grid: int) -> torch.Tensor:
-    """Per-cell values (K, grid*grid, ...) of the previous view moved to the current one by
-    the image warp `h` (bilinear; cells the previous view did not see get 0)."""
+def warp_cells(values: torch.Tensor, h: np.ndarray, image_wh: tuple[int, int],
+               grid: tuple[int, int]) -> torch.Tensor:
+    """Per-cell values (K, rows*cols, ...) of the previous view moved to the current one by
+    the warp `h` of images `image_wh` (width, height) that a (rows, cols) grid covers
+    (bilinear; cells the previous view did not see get 0)."""
     k, n = values.shape[:2]
     rest = values.shape[2:]
-    planes = values.reshape(k, n, -1).permute(0, 2, 1).reshape(k, -1, grid, grid)
+    rows, cols = grid
+    width, height = image_wh
+    planes = values.reshape(k, n, -1).permute(0, 2, 1).reshape(k, -1, rows, cols)
     # sampling grid: for each current cell centre, where it was in the previous image
     inv = np.linalg.inv(h)
-    centres = (np.arange(grid) + 0.5) * size / grid
-    xs, ys = np.meshgrid(centres, centres)
+    xs, ys = np.meshgrid((np.arange(cols) + 0.5) * width / cols,
+                         (np.arange(rows) + 0.5) * height / rows)
     pts = cv2.perspectiveTransform(np.float32(np.stack([xs, ys], -1)).reshape(-1, 1, 2), inv)
-    norm = torch.from_numpy(pts.reshape(1, grid, grid, 2) * 2.0 / size - 1.0).float()
+    pts = pts.reshape(1, rows, cols, 2) / np.float32([width, height]) * 2.0 - 1.0
+    norm = torch.from_numpy(pts).float()
     out = F.grid_sample(planes, norm.expand(k, -1, -1, -1), mode='bilinear',
                         padding_mode='zeros', align_corners=False)
     return out.reshape(k, -1, n).permute(0, 2, 1).reshape(k, n, *rest)

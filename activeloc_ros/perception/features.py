@@ -1,4 +1,4 @@
-"""The encoder's side of the model: frames in, the g x g grid of C-d features out.
+"""The encoder's side of the model: frames in, the rows x cols grid of C-d features out.
 
 `Features` owns the CNN encoder (`perception.encoders`), the arithmetic it runs in
 (float32, bfloat16 or OpenVINO int8, `perception.int8`), the mirrored border round its input
@@ -24,6 +24,9 @@ from activeloc_ros.perception.encoders import build_encoder, fold_batchnorm, set
 CPU_FEATURES = (('AVX2', '_is_avx2_supported'), ('AVX512', '_is_avx512_supported'),
                 ('VNNI', '_is_vnni_supported'), ('AVX512_BF16', '_is_avx512_bf16_supported'),
                 ('AMX', '_is_amx_tile_supported'))
+
+
+ASPECT_TOLERANCE = 0.1    # a frame's aspect this far from the input's is worth a warning
 
 
 def cpu_flags() -> list[str]:
@@ -87,24 +90,24 @@ class Features:
             if self.frozen_encoder is self.encoder:
                 self.frozen_encoder = copy.deepcopy(self.encoder)
             self.frozen_encoder = self.frozen_encoder.to(torch.bfloat16)
-        self.size = int(encoder.input_size)
+        height = int(encoder.input_size)
         self.channels = int(encoder.channels)
-        with torch.inference_mode():                            # the grid the encoder makes
-            zeros = torch.zeros(1, 3, self.size, self.size)
-            probe = self._run(self.frozen_encoder, self.encoder.preprocess(zeros))
-        self.grid = int(probe.shape[-1])                        # 14 at 224
-        self.cells = self.grid * probe.shape[-2]
-        stride = self.size // self.grid                         # 16 for the 14x14 grid
-        if cfg.encoder_pad % stride or cfg.encoder_pad >= self.size:
+        self.stride = height // self._probe(height, height)[1]  # input px per cell: 16
+        width = max(1, round(height * cfg.input_aspect / self.stride)) * self.stride
+        self.input_wh = (width, height)                         # (304, 224) at 4:3
+        self.grid = self._probe(width, height)                  # (rows, cols): (14, 19)
+        self.cells = self.grid[0] * self.grid[1]
+        if cfg.encoder_pad % self.stride or cfg.encoder_pad >= height:
             raise ConfigError(f"perception parameter 'encoder_pad' must be a multiple of the "
-                              f'encoder stride {stride} below {self.size}, got '
+                              f'encoder stride {self.stride} below {height}, got '
                               f'{cfg.encoder_pad}')
         if precision == 'int8':
             from activeloc_ros.perception import cache, int8
-            side = self.size + 2 * cfg.encoder_pad
+            pad = 2 * cfg.encoder_pad
             try:
                 self.frozen_encoder = int8.load(
-                    self.frozen_encoder, name=cfg.encoder, input_shape=(1, 3, side, side),
+                    self.frozen_encoder, name=cfg.encoder,
+                    input_shape=(1, 3, height + pad, width + pad),
                     prepare=lambda rgb: self.padded(self.tensor(self.resize(rgb))),
                     threads=torch.get_num_threads(), cache=cache.cache_dir())
             except WeightsError as exc:
@@ -115,13 +118,33 @@ class Features:
                       flush=True)
                 self.precision = 'float32'
 
+    def _probe(self, width: int, height: int) -> tuple[int, int]:
+        """(rows, cols) of the grid the encoder makes of a width x height input."""
+        with torch.inference_mode():
+            zeros = torch.zeros(1, 3, height, width)
+            f = self._run(self.frozen_encoder, self.encoder.preprocess(zeros))
+        return int(f.shape[-2]), int(f.shape[-1])
+
+    def aspect_note(self, frame_wh: tuple[int, int]) -> str | None:
+        """Why frames of `frame_wh` (width, height) reach the encoder out of shape, or None:
+        their aspect differs from the input's by more than `ASPECT_TOLERANCE`."""
+        width, height = frame_wh
+        aspect = width / height
+        ours = self.input_wh[0] / self.input_wh[1]
+        if abs(aspect / ours - 1.0) <= ASPECT_TOLERANCE:
+            return None
+        return (f'frames of {width}x{height} (aspect {aspect:.2f}) are resized to the '
+                f'{self.input_wh[0]}x{self.input_wh[1]} encoder input (aspect {ours:.2f}), '
+                f'out of shape: set the perception parameter input_aspect to {aspect:.4f}')
+
     def preprocess(self, frame: np.ndarray) -> torch.Tensor | None:
-        """(H, W, 3) RGB 0..255 -> (1, 3, S, S) normalised encoder input; None if not finite."""
+        """(H, W, 3) RGB 0..255 -> (1, 3, h, w) normalised encoder input (`input_wh`); None
+        if not finite."""
         img = self.resize(frame)
         return None if img is None else self.tensor(img)
 
     def resize(self, frame: np.ndarray) -> np.ndarray | None:
-        """(H, W, 3) RGB 0..255 -> (S, S, 3) encoder-sized image; None if not finite."""
+        """(H, W, 3) RGB 0..255 -> (h, w, 3) encoder-sized image; None if not finite."""
         _check_frame(frame)
         img = frame
         if frame.dtype != np.uint8:
@@ -129,29 +152,30 @@ class Features:
                 return None
             img = frame.astype(np.float32, copy=False)
         h, w = img.shape[:2]
-        shrink = h >= self.size and w >= self.size
-        img = cv2.resize(img, (self.size, self.size),
+        width, height = self.input_wh
+        shrink = h >= height and w >= width
+        img = cv2.resize(img, self.input_wh,
                          interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
         if self.cfg.blur_ksize:
             img = cv2.GaussianBlur(img, (self.cfg.blur_ksize,) * 2, 0)
         return img
 
     def tensor(self, img: np.ndarray) -> torch.Tensor:
-        """(S, S, 3) encoder-sized image -> (1, 3, S, S) normalised encoder input."""
+        """(h, w, 3) encoder-sized image -> (1, 3, h, w) normalised encoder input."""
         x = torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1)[None].float()
-        x = self.encoder.preprocess(x)                          # (1, 3, S, S)
+        x = self.encoder.preprocess(x)                          # (1, 3, h, w)
         if self.cfg.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
         return x
 
     def of(self, x: torch.Tensor, *, learning: bool = False) -> torch.Tensor:
-        """(B, 3, S, S) -> (B, N, C) float32 features, computed at `precision` by the frozen
+        """(B, 3, h, w) -> (B, N, C) float32 features, computed at `precision` by the frozen
         encoder, or with `learning` by the encoder whose weights learn (under autograd)."""
         encoder = self.encoder if learning else self.frozen_encoder
         return self.to_cells(self._forward(encoder, x))
 
     def _forward(self, encoder: nn.Module, x: torch.Tensor) -> torch.Tensor:
-        crop = self.cfg.encoder_pad * self.grid // self.size   # cells the padding adds
+        crop = self.cfg.encoder_pad // self.stride              # cells the padding adds
         f = self._run(encoder, self.padded(x))
         return f[..., crop:f.shape[-2] - crop, crop:f.shape[-1] - crop]
 
@@ -168,7 +192,7 @@ class Features:
             return encoder(x).float()
 
     def to_cells(self, f: torch.Tensor) -> torch.Tensor:
-        """(B, C, g, g) encoder output -> (B, N, C), scaled as `feature_norm` says."""
+        """(B, C, rows, cols) encoder output -> (B, N, C), scaled as `feature_norm` says."""
         f = f.flatten(2).transpose(1, 2)
         if self.cfg.feature_norm == 'frame_rms':
             f = f / (f.square().mean(dim=(1, 2), keepdim=True).sqrt() + 1e-6)

@@ -1,6 +1,7 @@
 """The online predictive-learning surprise model (Trehan & Aakur, WACV 2022, Sec. 3.2 and 4).
 
-A CNN encoder turns each frame into a g x g grid of C-d features (g = 14 at 224 x 224). Each
+A CNN encoder turns each frame into a rows x cols grid of C-d features, one cell per 16 px of
+its input (14 x 14 at the paper's 224 x 224, 14 x 19 at 304 x 224: `input_aspect`). Each
 grid cell is one batch element of a shared predictor: Bahdanau attention over the cells
 weights the features, a stack of LSTMs carries the scene's dynamics from frame to frame and
 predicts every cell's feature of the next frame. The motion-weighted prediction error of the
@@ -106,7 +107,7 @@ class Observation:
 @dataclass
 class PerceptionResult:
     """What one `SurpriseModel.step` returns."""
-    surprise_map: np.ndarray           # (g, g) float32, >= 0, sums to 1
+    surprise_map: np.ndarray           # (rows, cols) float32, >= 0, sums to 1
     cell: tuple[int, int]              # (row, col) of the argmax
     location_px: tuple[float, float]   # (x, y) centre of that cell in input-frame pixels
     peak: float
@@ -180,16 +181,16 @@ class SurpriseModel:
         return self.features.precision
 
     @property
-    def size(self) -> int:
-        return self.features.size                               # input side, 224
+    def input_wh(self) -> tuple[int, int]:
+        return self.features.input_wh                           # (224, 224), (304, 224)
 
     @property
-    def grid(self) -> int:
-        return self.features.grid                               # 14
+    def grid(self) -> tuple[int, int]:
+        return self.features.grid                               # (rows, cols): (14, 14)
 
     @property
     def cells(self) -> int:
-        return self.features.cells                              # 196
+        return self.features.cells                              # rows x cols: 196
 
     # -- state -------------------------------------------------------------------------------
     def reset(self) -> None:
@@ -199,10 +200,10 @@ class SurpriseModel:
 
     def _forget_view(self) -> None:
         """`observe`'s memory of the previous frame."""
-        self.x_prev = None         # (1, 3, S, S) normalised previous frame
-        self.img_prev = None       # (S, S, 3) previous resized image (ego_motion)
+        self.x_prev = None         # (1, 3, h, w) normalised previous frame
+        self.img_prev = None       # (h, w, 3) previous resized image (ego_motion)
         self.keys_prev = None      # its ORB keypoints and descriptors (ego_motion)
-        self.grey_prev = None      # (S, S) its blurred grey picture (motion_source image)
+        self.grey_prev = None      # (h, w) its blurred grey picture (motion_source image)
         self.t_prev = None         # its capture time, s, if given
 
     def _forget_sequence(self) -> None:
@@ -385,7 +386,7 @@ class SurpriseModel:
         img_prev, self.img_prev = self.img_prev, img
         if prev_keys is None or img_prev is None:
             return None, None
-        warp = self.ego.estimate(prev_keys, keys, self.size)
+        warp = self.ego.estimate(prev_keys, keys, self.input_wh)
         if warp is None or self.cfg.ego_warp != 'image':
             return warp, None
         self.x_prev = self.features.tensor(egomotion.warp_image(img_prev, warp, img))
@@ -396,13 +397,13 @@ class SurpriseModel:
 
     def _move_memory(self, warp: np.ndarray) -> None:
         """Move the predictor's state and the past maps into the new view."""
-        g = self.grid
+        wh, grid = self.input_wh, self.grid
         if self.state is not None:
-            self.state = tuple(egomotion.warp_cells(s, warp, self.size, g) for s in self.state)
+            self.state = tuple(egomotion.warp_cells(s, warp, wh, grid) for s in self.state)
         for name in ('map_prev', 'map_prev2'):
             m = getattr(self, name)
             if m is not None:
-                m = egomotion.warp_cells(m[None], warp, self.size, g)[0]
+                m = egomotion.warp_cells(m[None], warp, wh, grid)[0]
                 total = float(m.sum())
                 setattr(self, name, m / total if total > 0 else None)
 
@@ -414,14 +415,14 @@ class SurpriseModel:
         if previous is None:
             return None
         change = motion.residual(previous, current, warp)
-        return torch.from_numpy(motion.cell_means(change, (self.grid, self.grid)).reshape(-1))
+        return torch.from_numpy(motion.cell_means(change, self.grid).reshape(-1))
 
     def _warp_features(self, f_prev: torch.Tensor, f_cur: torch.Tensor,
                        warp: np.ndarray) -> torch.Tensor:
         """(N, C) previous features moved into the current view (`ego_warp: features`);
         where the previous view saw nothing, the current features: no change there."""
         ones = torch.ones(self.cells, 1)                        # how much of a cell was seen
-        moved = egomotion.warp_cells(torch.cat([f_prev, ones], 1)[None], warp, self.size,
+        moved = egomotion.warp_cells(torch.cat([f_prev, ones], 1)[None], warp, self.input_wh,
                                      self.grid)[0]
         return moved[:, :-1] + (1.0 - moved[:, -1:]) * f_cur
 
@@ -470,20 +471,19 @@ class SurpriseModel:
     def _result(self, e: torch.Tensor | None, *, frame: np.ndarray, index: int,
                 timings: dict[str, float], t0: float, losses: dict[str, float] | None = None,
                 lr: float = 0.0) -> PerceptionResult:
-        g, n = self.grid, self.cells
+        (rows, cols), n = self.grid, self.cells
         probs = surprise_map(e, self.cfg.map_temperature) if e is not None else None
         if probs is None or not _finite([probs]):
             probs = torch.full((n,), 1.0 / n)
         self.map_prev2, self.map_prev = self.map_prev, probs
         flat = int(torch.argmax(probs))
-        row, col = divmod(flat, g)
+        row, col = divmod(flat, cols)
         h, w = frame.shape[:2]
-        rows = n // g
-        x, y = configured_location(probs.reshape(rows, g), self.cfg)
+        x, y = configured_location(probs.reshape(rows, cols), self.cfg)
         timings['total'] = time.perf_counter() - t0
         return PerceptionResult(
-            surprise_map=probs.reshape(rows, g).numpy().astype(np.float32),
-            cell=(row, col), location_px=(x * w / g, y * h / rows),
+            surprise_map=probs.reshape(rows, cols).numpy().astype(np.float32),
+            cell=(row, col), location_px=(x * w / cols, y * h / rows),
             peak=float(probs[flat]),
             losses=losses or dict(_NO_LOSSES),
             lr=lr, updated=losses is not None, timings=timings,

@@ -84,7 +84,7 @@ class FrameDifference:
         if self.ego is not None:
             keys = self.ego.keypoints(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY))
             if self.keys is not None:
-                warp = self.ego.estimate(self.keys, keys, self.size)
+                warp = self.ego.estimate(self.keys, keys, (self.size, self.size))
             self.keys = keys
         previous, self.previous = self.previous, current
         self.moved = warp is not None
