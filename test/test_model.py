@@ -713,9 +713,10 @@ def test_ego_warp_of_the_features_fills_the_unseen_edge_with_the_new_frame():
 
 
 @pytest.mark.parametrize('aspect, frame_wh, warned', [
-    (1.0, (640, 480), True),          # a 4:3 frame squashed into the paper's square
-    (1.0, (500, 480), False),
+    (1.0, (640, 480), False),         # the paper's square squashes any frame on purpose
     (4 / 3, (640, 480), False),
+    (4 / 3, (600, 480), False),       # within 10%
+    (4 / 3, (480, 480), True),
     (4 / 3, (1280, 720), True),
     (16 / 9, (1280, 720), False),
 ])

@@ -126,8 +126,12 @@ class Features:
         return int(f.shape[-2]), int(f.shape[-1])
 
     def aspect_note(self, frame_wh: tuple[int, int]) -> str | None:
-        """Why frames of `frame_wh` (width, height) reach the encoder out of shape, or None:
-        their aspect differs from the input's by more than `ASPECT_TOLERANCE`."""
+        """Why frames of `frame_wh` (width, height) reach the encoder out of the shape
+        `input_aspect` was set for, or None: their aspect differs from the input's by more
+        than `ASPECT_TOLERANCE`. The paper's square input (1) squashes every frame on
+        purpose: no note."""
+        if self.cfg.input_aspect == 1.0:
+            return None
         width, height = frame_wh
         aspect = width / height
         ours = self.input_wh[0] / self.input_wh[1]
