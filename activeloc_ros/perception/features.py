@@ -92,10 +92,13 @@ class Features:
             self.frozen_encoder = self.frozen_encoder.to(torch.bfloat16)
         height = int(encoder.input_size)
         self.channels = int(encoder.channels)
-        self.stride = height // self._probe(height, height)[1]  # input px per cell: 16
+        with torch.inference_mode():                            # the grid the encoder makes
+            zeros = torch.zeros(1, 3, height, height)
+            rows = self._run(self.frozen_encoder, self.encoder.preprocess(zeros)).shape[-2]
+        self.stride = height // rows                            # input px per cell: 16
         width = max(1, round(height * cfg.input_aspect / self.stride)) * self.stride
         self.input_wh = (width, height)                         # (304, 224) at 4:3
-        self.grid = self._probe(width, height)                  # (rows, cols): (14, 19)
+        self.grid = (rows, width // self.stride)                # (rows, cols): (14, 19)
         self.cells = self.grid[0] * self.grid[1]
         if cfg.encoder_pad % self.stride or cfg.encoder_pad >= height:
             raise ConfigError(f"perception parameter 'encoder_pad' must be a multiple of the "
@@ -117,13 +120,6 @@ class Features:
                 print(f'warning: {exc}; the encoder runs in float32', file=sys.stderr,
                       flush=True)
                 self.precision = 'float32'
-
-    def _probe(self, width: int, height: int) -> tuple[int, int]:
-        """(rows, cols) of the grid the encoder makes of a width x height input."""
-        with torch.inference_mode():
-            zeros = torch.zeros(1, 3, height, width)
-            f = self._run(self.frozen_encoder, self.encoder.preprocess(zeros))
-        return int(f.shape[-2]), int(f.shape[-1])
 
     def aspect_note(self, frame_wh: tuple[int, int]) -> str | None:
         """Why frames of `frame_wh` (width, height) reach the encoder out of the shape
