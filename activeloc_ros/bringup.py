@@ -806,6 +806,11 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
     if recorder is not None and recorder.error is not None and 'recording' not in reason:
         failed.append(None)
     print(summary(monitor, elapsed, reason, codes, recorder))
+    perception = [c for c in children if c.name == 'perception' and c not in failed]
+    if not monitor.maps and perception:      # why the run fails, when no node failed
+        print(f'bringup: no surprise map came; the last lines of {perception[0].log_path} '
+              f'(a first use of an int8 encoder is built first, about a minute):\n'
+              f'{perception[0].tail(3)}', file=sys.stderr)
     monitor.node.destroy_node()
     rclpy.try_shutdown(context=context)
     return 1 if failed or any(errors.values()) or not monitor.maps else 0

@@ -143,3 +143,38 @@ def test_a_burst_of_sigterms_stops_a_node_cleanly(launch, tmp_path, module):
     assert process.wait(timeout=15) in (0, -signal.SIGTERM)
     text = log.read_text()
     assert 'stopped' in text and 'Traceback' not in text, text[-2000:]
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_while_perception_builds_its_int8_encoder_ends_the_build(tmp_path, sig):
+    """The first use of an int8 encoder builds it for about a minute before the node is
+    ready. A stop then ends the build at once, as on any frame, and leaves no half-built
+    model in the cache (bringup once had to SIGKILL the node after 13 s)."""
+    from activeloc_ros.perception.cache import weights_path
+    weights = weights_path('vgg19')           # the real weights; a fresh cache holds no int8
+    cache = tmp_path / 'cache'
+    cache.mkdir()
+    (cache / weights.name).symlink_to(weights)
+    log_path = tmp_path / 'perception.log'
+    with open(log_path, 'w') as log:
+        process = subprocess.Popen(
+            [sys.executable, '-m', 'activeloc_ros.nodes.perception_node',
+             *params_args('perception', 'encoder_precision:=int8')],
+            cwd=REPO, env=dict(os.environ, PYTHONUNBUFFERED='1', ACTIVELOC_CACHE=str(cache)),
+            stdout=log, stderr=subprocess.STDOUT)
+        try:
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline and 'building the int8' not in log_path.read_text():
+                assert process.poll() is None, log_path.read_text()
+                time.sleep(0.05)
+            time.sleep(1.0)                       # into the calibration
+            process.send_signal(sig)
+            code = process.wait(timeout=10)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+    text = log_path.read_text()
+    assert code == 0, text[-2000:]
+    assert 'before the node was ready' in text and 'Traceback' not in text, text[-2000:]
+    assert [p.name for p in (cache / 'int8').iterdir()] == []   # no model, no build folder

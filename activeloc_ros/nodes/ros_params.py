@@ -358,6 +358,7 @@ class _StopRequest:
     deadlocks the process (seen: a node that the repeated SIGTERMs of its parent's death
     left hanging for good)."""
     requested = False
+    starting = False          # the node is being made, which a stop ends at once
 
 
 def node_help(executable: str, doc: str, params: Sequence[Param]) -> str:
@@ -447,8 +448,10 @@ def run(node_factory: Callable[..., Any], args=None, *,
         # The first Ctrl-C or kill only asks the loop to end: an exception raised in the
         # middle of rclpy's C++ (taking a message) would come out as a RuntimeError and
         # fail the exit. A second Ctrl-C interrupts on_stop at once; a repeated SIGTERM
-        # (a parent's death can signal more than once) is the same request again.
-        if stop.requested and signum == signal.SIGINT:
+        # (a parent's death can signal more than once) is the same request again. While the
+        # node is being made no message is being taken, and the making can take a minute
+        # (the first use of an int8 encoder builds it), so a stop then ends it at once.
+        if stop.starting or (stop.requested and signum == signal.SIGINT):
             raise KeyboardInterrupt
         stop.requested = True
 
@@ -465,14 +468,20 @@ def run(node_factory: Callable[..., Any], args=None, *,
     rclpy.init(args=args, signal_handler_options=handler)
     node = executor = None
     try:
+        stop.starting = True
+        if stop.requested:            # asked before the handler could end the start
+            raise KeyboardInterrupt
         node = node_factory()
+        stop.starting = False
         executor = lean_executor()
         executor.add_node(node)
         # A node that ends by itself (a camera at the end of its bag) sets `finished`.
         while rclpy.ok() and not stop.requested and not getattr(node, 'finished', False):
             executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        if node is None:
+            print('stopped (Ctrl-C or SIGTERM) before the node was ready', file=sys.stderr,
+                  flush=True)
     except ActivelocError as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
