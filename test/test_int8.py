@@ -1,6 +1,9 @@
 """The int8 encoder (`encoder_precision: int8`): built once from the sample bag's frames,
 cached, close to float32, and a clear error when it cannot be had. A tiny encoder and a
 few calibration frames keep the quantisation fast; nothing here measures time."""
+import os
+import time
+
 import numpy as np
 import pytest
 import torch
@@ -105,6 +108,17 @@ def test_an_int8_model_damaged_in_the_cache_is_found_by_its_hashes(cache, capsys
     capsys.readouterr()
     assert make('int8').precision == 'int8'
     assert 'building the int8 encoder' in capsys.readouterr().err
+
+
+def test_a_build_removes_the_folders_of_killed_builds_but_not_a_running_one(cache):
+    """A build killed outright (SIGKILL, power) leaves its temporary folder behind."""
+    killed, running = (cache / 'int8' / '.build-killed'), (cache / 'int8' / '.build-running')
+    for folder in (killed, running):
+        folder.mkdir(parents=True)
+    hours_ago = time.time() - 2 * int8.STALE_BUILD_S
+    os.utime(killed, (hours_ago, hours_ago))
+    make('int8')
+    assert sorted(p.name for p in (cache / 'int8').glob('.build-*')) == ['.build-running']
 
 
 def test_the_cached_model_is_told_apart_by_the_convolutions_padding():

@@ -19,6 +19,7 @@ from pathlib import Path
 import shutil
 import sys
 import tempfile
+import time
 from typing import Callable, Iterator, TextIO
 
 import numpy as np
@@ -30,6 +31,7 @@ from activeloc_ros.paths import file_sha256, write_atomic
 
 CALIBRATION_FRAMES = 128
 NEEDS = 'pip install openvino nncf (setup.py installs both)'
+STALE_BUILD_S = 3600.0   # a build's folder this old was left by a killed process
 
 
 def available() -> bool:
@@ -140,6 +142,7 @@ def build(encoder: nn.Module, path: Path, *, input_shape: tuple[int, ...],
     out = stream or sys.stderr
     try:                      # a folder it cannot write: found now, not after the minute
         path.parent.mkdir(parents=True, exist_ok=True)
+        _remove_stale_builds(path.parent)
         tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix='.build-'))
     except OSError as exc:
         raise WeightsError(f'cannot write the int8 encoder into {path.parent} '
@@ -154,6 +157,17 @@ def build(encoder: nn.Module, path: Path, *, input_shape: tuple[int, ...],
         shutil.rmtree(tmp, ignore_errors=True)
     print(f'wrote {path}', file=out, flush=True)
     return path
+
+
+def _remove_stale_builds(folder: Path) -> None:
+    """Delete the build folders that killed builds left behind (up to 10 MB each); a build
+    still running elsewhere is minutes old, not an hour."""
+    for stale in folder.glob('.build-*'):
+        try:
+            if time.time() - stale.stat().st_mtime > STALE_BUILD_S:
+                shutil.rmtree(stale, ignore_errors=True)
+        except OSError:       # gone meanwhile, removed by another build
+            pass
 
 
 def _build_into(tmp: Path, encoder: nn.Module, path: Path, *, input_shape: tuple[int, ...],
