@@ -625,10 +625,13 @@ def percentile_text(monitor: Monitor) -> str:
 
 class StopRequest:
     """SIGINT and SIGTERM ask bringup to stop; the graph is then stopped in order and the
-    bag closed. A signal while stopping is told to wait, not obeyed."""
+    bag closed. A signal while stopping is told to wait, not obeyed. While the nodes of an
+    in-process graph are being made (a first use of an int8 encoder builds it for a minute)
+    the first signal ends that at once."""
 
     def __init__(self):
         self.reason: str | None = None
+        self.starting = False
         self._previous = {}
 
     def install(self) -> None:
@@ -643,6 +646,8 @@ class StopRequest:
         name = 'Ctrl-C' if signum == signal.SIGINT else signal.Signals(signum).name
         if self.reason is None:
             self.reason = name
+            if self.starting:
+                raise KeyboardInterrupt
         else:
             try:
                 print(f'\n{name}: already stopping the nodes and closing the recording, '
@@ -712,7 +717,9 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
     reason = 'source ended'
     try:
         if args.in_process:
+            stop.starting = True
             graph = InProcessGraph(args, context)
+            stop.starting = False
         else:
             env = dict(os.environ, PYTHONUNBUFFERED='1')
             # the source starts last, in the loop below
@@ -773,8 +780,9 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
                 last_print = elapsed
                 line = monitor.status(elapsed)
                 print(('\r' + line) if tty else line, end='' if tty else '\n', flush=True)
-    except KeyboardInterrupt:     # a SIGINT before the handler was in place
-        reason = 'Ctrl-C'
+    except KeyboardInterrupt:     # a stop while the nodes were made (or a SIGINT before the
+        # handler was in place)
+        reason = stop.reason or 'Ctrl-C'
     except ActivelocError as exc:
         reason = str(exc)
         failed.append(None)

@@ -145,23 +145,24 @@ def test_a_burst_of_sigterms_stops_a_node_cleanly(launch, tmp_path, module):
     assert 'stopped' in text and 'Traceback' not in text, text[-2000:]
 
 
-@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
-def test_a_stop_while_perception_builds_its_int8_encoder_ends_the_build(tmp_path, sig):
-    """The first use of an int8 encoder builds it for about a minute before the node is
-    ready. A stop then ends the build at once, as on any frame, and leaves no half-built
-    model in the cache (bringup once had to SIGKILL the node after 13 s)."""
+
+def fresh_cache(tmp_path):
+    """A weight cache with the real VGG-19 weights and no int8 encoder: the first use of
+    int8 builds it for about a minute."""
     from activeloc_ros.perception.cache import weights_path
-    weights = weights_path('vgg19')           # the real weights; a fresh cache holds no int8
+    weights = weights_path('vgg19')
     cache = tmp_path / 'cache'
     cache.mkdir()
     (cache / weights.name).symlink_to(weights)
-    log_path = tmp_path / 'perception.log'
+    return cache
+
+
+def stop_once_building(command, log_path, cache, sig, env=None) -> int:
+    """Start `command`, send `sig` once it builds the int8 encoder; its exit code."""
     with open(log_path, 'w') as log:
         process = subprocess.Popen(
-            [sys.executable, '-m', 'activeloc_ros.nodes.perception_node',
-             *params_args('perception', 'encoder_precision:=int8')],
-            cwd=REPO, env=dict(os.environ, PYTHONUNBUFFERED='1', ACTIVELOC_CACHE=str(cache)),
-            stdout=log, stderr=subprocess.STDOUT)
+            command, cwd=REPO, stdout=log, stderr=subprocess.STDOUT,
+            env=dict(env or os.environ, PYTHONUNBUFFERED='1', ACTIVELOC_CACHE=str(cache)))
         try:
             deadline = time.monotonic() + 60
             while time.monotonic() < deadline and 'building the int8' not in log_path.read_text():
@@ -169,12 +170,36 @@ def test_a_stop_while_perception_builds_its_int8_encoder_ends_the_build(tmp_path
                 time.sleep(0.05)
             time.sleep(1.0)                       # into the calibration
             process.send_signal(sig)
-            code = process.wait(timeout=10)
+            return process.wait(timeout=10)
         finally:
             if process.poll() is None:
                 process.kill()
                 process.wait()
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_while_perception_builds_its_int8_encoder_ends_the_build(tmp_path, sig):
+    """The first use of an int8 encoder builds it for about a minute before the node is
+    ready. A stop then ends the build at once, as on any frame, and leaves no half-built
+    model in the cache (bringup once had to SIGKILL the node after 13 s)."""
+    cache, log_path = fresh_cache(tmp_path), tmp_path / 'perception.log'
+    code = stop_once_building(
+        [sys.executable, '-m', 'activeloc_ros.nodes.perception_node',
+         *params_args('perception', 'encoder_precision:=int8')], log_path, cache, sig)
     text = log_path.read_text()
     assert code == 0, text[-2000:]
     assert 'before the node was ready' in text and 'Traceback' not in text, text[-2000:]
     assert [p.name for p in (cache / 'int8').iterdir()] == []   # no model, no build folder
+
+
+def test_ctrl_c_while_an_in_process_graph_builds_its_int8_encoder_ends_it(tmp_path,
+                                                                         graph_env):
+    cache, log_path = fresh_cache(tmp_path), tmp_path / 'bringup.log'
+    code = stop_once_building(
+        [sys.executable, '-m', 'activeloc_ros.bringup', '--in-process', '--log-dir',
+         str(tmp_path / 'logs')], log_path, cache, signal.SIGINT, graph_env)
+    text = log_path.read_text()
+    assert code == 1, text[-2000:]                          # no map: a run that saw nothing
+    assert 'stopped after' in text and '(Ctrl-C)' in text and 'Traceback' not in text, \
+        text[-2000:]
+    assert [p.name for p in (cache / 'int8').iterdir()] == []
