@@ -18,11 +18,13 @@ from dataclasses import dataclass
 import difflib
 import functools
 import math
+import os
 from pathlib import Path
 import re
 import signal
 import sys
 import textwrap
+import threading
 import time
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
@@ -359,6 +361,27 @@ class _StopRequest:
     left hanging for good)."""
     requested = False
     starting = False          # the node is being made, which a stop ends at once
+    requested_at = math.inf   # time.monotonic() of the first request while starting
+    watching = True           # `_end_a_start_that_goes_on` runs
+
+
+START_STOP_GRACE_S = 3.0      # a stop while starting ends the process within this
+
+
+def _end_a_start_that_goes_on(stop: _StopRequest) -> None:
+    """While the node is being made: once a stop was asked for and the start still goes on
+    `START_STOP_GRACE_S` later, end the process. The stop raises KeyboardInterrupt in the
+    start, but third-party code can swallow it (OpenVINO's model conversion, tracing the
+    encoder for an int8 build, goes on after one), and the build would then take its
+    minute. Nothing is lost: the node never became ready, and a build's folder is removed
+    by the next build (`int8`)."""
+    while stop.watching:
+        if stop.starting and time.monotonic() - stop.requested_at > START_STOP_GRACE_S:
+            print(f'stopped (Ctrl-C or SIGTERM) before the node was ready: its start went on '
+                  f'{START_STOP_GRACE_S:g} s after the stop, so the process ends here',
+                  file=sys.stderr, flush=True)
+            os._exit(0)
+        time.sleep(0.1)
 
 
 def node_help(executable: str, doc: str, params: Sequence[Param]) -> str:
@@ -451,7 +474,10 @@ def run(node_factory: Callable[..., Any], args=None, *,
         # (a parent's death can signal more than once) is the same request again. While the
         # node is being made no message is being taken, and the making can take a minute
         # (the first use of an int8 encoder builds it), so a stop then ends it at once.
-        if stop.starting or (stop.requested and signum == signal.SIGINT):
+        if stop.starting:             # (requested too: a start that swallows it ends so)
+            stop.requested, stop.requested_at = True, min(stop.requested_at, time.monotonic())
+            raise KeyboardInterrupt
+        if stop.requested and signum == signal.SIGINT:
             raise KeyboardInterrupt
         stop.requested = True
 
@@ -467,25 +493,29 @@ def run(node_factory: Callable[..., Any], args=None, *,
         return 2
     rclpy.init(args=args, signal_handler_options=handler)
     node = executor = None
+    threading.Thread(target=_end_a_start_that_goes_on, args=(stop,), daemon=True).start()
     try:
         stop.starting = True
         if stop.requested:            # asked before the handler could end the start
             raise KeyboardInterrupt
         node = node_factory()
-        stop.starting = False
+        stop.starting = stop.watching = False
         executor = lean_executor()
         executor.add_node(node)
         # A node that ends by itself (a camera at the end of its bag) sets `finished`.
         while rclpy.ok() and not stop.requested and not getattr(node, 'finished', False):
             executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
+        stop.starting = stop.watching = False
         if node is None:
             print('stopped (Ctrl-C or SIGTERM) before the node was ready', file=sys.stderr,
                   flush=True)
     except ActivelocError as exc:
+        stop.starting = stop.watching = False
         print(f'error: {exc}', file=sys.stderr)
         return 1
     finally:
+        stop.starting = stop.watching = False
         if executor is not None:              # (only ever made once the node exists)
             executor.remove_node(node)        # on_stop may spin the node on its own
         if node is not None:
