@@ -146,7 +146,6 @@ def test_a_burst_of_sigterms_stops_a_node_cleanly(launch, tmp_path, module):
     assert 'stopped' in text and 'Traceback' not in text, text[-2000:]
 
 
-
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
 def test_a_stop_while_perception_builds_its_int8_encoder_ends_the_build(tmp_path, sig):
     """The first use of an int8 encoder builds it for about a minute before the node is
@@ -180,7 +179,9 @@ def test_a_stop_while_perception_builds_its_int8_encoder_ends_the_build(tmp_path
     assert code == 0, text[-2000:]
     assert 'before the node was ready' in text and 'Traceback' not in text, text[-2000:]
     # no model; a build folder only if the start went on (the next build removes it)
-    assert [p.name for p in (cache / 'int8').iterdir() if not p.name.startswith('.build-')] == []
+    left = [p.name for p in (cache / 'int8').iterdir() if not p.name.startswith('.build-')]
+    assert left == []
+
 
 SWALLOWING_START = '''
 import sys, time

@@ -366,6 +366,7 @@ class _StopRequest:
 
 
 START_STOP_GRACE_S = 3.0      # a stop while starting ends the process within this
+STOPPED_STARTING = 'stopped (Ctrl-C or SIGTERM) before the node was ready'
 
 
 def _end_a_start_that_goes_on(stop: _StopRequest) -> None:
@@ -377,9 +378,8 @@ def _end_a_start_that_goes_on(stop: _StopRequest) -> None:
     by the next build (`int8`)."""
     while stop.watching:
         if stop.starting and time.monotonic() - stop.requested_at > START_STOP_GRACE_S:
-            print(f'stopped (Ctrl-C or SIGTERM) before the node was ready: its start went on '
-                  f'{START_STOP_GRACE_S:g} s after the stop, so the process ends here',
-                  file=sys.stderr, flush=True)
+            print(f'{STOPPED_STARTING}: its start went on {START_STOP_GRACE_S:g} s after the '
+                  'stop, so the process ends here', file=sys.stderr, flush=True)
             os._exit(0)
         time.sleep(0.1)
 
@@ -508,8 +508,7 @@ def run(node_factory: Callable[..., Any], args=None, *,
     except (KeyboardInterrupt, ExternalShutdownException):
         stop.starting = stop.watching = False
         if node is None:
-            print('stopped (Ctrl-C or SIGTERM) before the node was ready', file=sys.stderr,
-                  flush=True)
+            print(STOPPED_STARTING, file=sys.stderr, flush=True)
     except ActivelocError as exc:
         stop.starting = stop.watching = False
         print(f'error: {exc}', file=sys.stderr)
