@@ -362,7 +362,6 @@ class _StopRequest:
     requested = False
     starting = False          # the node is being made, which a stop ends at once
     requested_at = math.inf   # time.monotonic() of the first request while starting
-    watching = True           # `_end_a_start_that_goes_on` runs
 
 
 START_STOP_GRACE_S = 3.0      # a stop while starting ends the process within this
@@ -376,8 +375,8 @@ def _end_a_start_that_goes_on(stop: _StopRequest) -> None:
     encoder for an int8 build, goes on after one), and the build would then take its
     minute. Nothing is lost: the node never became ready, and a build's folder is removed
     by the next build (`int8`)."""
-    while stop.watching:
-        if stop.starting and time.monotonic() - stop.requested_at > START_STOP_GRACE_S:
+    while stop.starting:
+        if time.monotonic() - stop.requested_at > START_STOP_GRACE_S:
             print(f'{STOPPED_STARTING}: its start went on {START_STOP_GRACE_S:g} s after the '
                   'stop, so the process ends here', file=sys.stderr, flush=True)
             os._exit(0)
@@ -493,28 +492,28 @@ def run(node_factory: Callable[..., Any], args=None, *,
         return 2
     rclpy.init(args=args, signal_handler_options=handler)
     node = executor = None
-    threading.Thread(target=_end_a_start_that_goes_on, args=(stop,), daemon=True).start()
     try:
         stop.starting = True
+        threading.Thread(target=_end_a_start_that_goes_on, args=(stop,), daemon=True).start()
         if stop.requested:            # asked before the handler could end the start
             raise KeyboardInterrupt
         node = node_factory()
-        stop.starting = stop.watching = False
+        stop.starting = False
         executor = lean_executor()
         executor.add_node(node)
         # A node that ends by itself (a camera at the end of its bag) sets `finished`.
         while rclpy.ok() and not stop.requested and not getattr(node, 'finished', False):
             executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
-        stop.starting = stop.watching = False
+        stop.starting = False
         if node is None:
             print(STOPPED_STARTING, file=sys.stderr, flush=True)
     except ActivelocError as exc:
-        stop.starting = stop.watching = False
+        stop.starting = False
         print(f'error: {exc}', file=sys.stderr)
         return 1
     finally:
-        stop.starting = stop.watching = False
+        stop.starting = False
         if executor is not None:              # (only ever made once the node exists)
             executor.remove_node(node)        # on_stop may spin the node on its own
         if node is not None:
