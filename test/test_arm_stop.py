@@ -37,12 +37,12 @@ def launch(tmp_path):
     """Start `activeloc_ros.<module>` with its params file; stop leftovers at teardown."""
     started = []
 
-    def start(module: str, *overrides: str) -> subprocess.Popen:
+    def start(module: str, *overrides: str, env: dict | None = None) -> subprocess.Popen:
         log = open(tmp_path / f'{module}.log', 'w')
         process = subprocess.Popen(
             [sys.executable, '-m', f'activeloc_ros.nodes.{module}',
              *params_args(module.removesuffix('_node'), *overrides)],
-            cwd=REPO, env=dict(os.environ, PYTHONUNBUFFERED='1'), stdout=log,
+            cwd=REPO, env=dict(os.environ, PYTHONUNBUFFERED='1', **(env or {})), stdout=log,
             stderr=subprocess.STDOUT)
         started.append((process, log))
         return process
@@ -147,7 +147,8 @@ def test_a_burst_of_sigterms_stops_a_node_cleanly(launch, tmp_path, module):
 
 
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
-def test_a_stop_while_perception_builds_its_int8_encoder_ends_the_build(tmp_path, sig):
+def test_a_stop_while_perception_builds_its_int8_encoder_ends_the_build(launch, tmp_path,
+                                                                         sig):
     """The first use of an int8 encoder builds it for about a minute before the node is
     ready. A stop then ends the build at once, as on any frame, and leaves no model in the
     cache (bringup once had to SIGKILL the node after 13 s)."""
@@ -156,25 +157,16 @@ def test_a_stop_while_perception_builds_its_int8_encoder_ends_the_build(tmp_path
     cache = tmp_path / 'cache'
     cache.mkdir()
     (cache / weights.name).symlink_to(weights)
-    log_path = tmp_path / 'perception.log'
-    with open(log_path, 'w') as log:
-        process = subprocess.Popen(
-            [sys.executable, '-m', 'activeloc_ros.nodes.perception_node',
-             *params_args('perception', 'encoder_precision:=int8')],
-            cwd=REPO, stdout=log, stderr=subprocess.STDOUT,
-            env=dict(os.environ, PYTHONUNBUFFERED='1', ACTIVELOC_CACHE=str(cache)))
-        try:
-            deadline = time.monotonic() + 60
-            while time.monotonic() < deadline and 'building the int8' not in log_path.read_text():
-                assert process.poll() is None, log_path.read_text()
-                time.sleep(0.05)
-            time.sleep(1.0)                       # into the conversion and calibration
-            process.send_signal(sig)
-            code = process.wait(timeout=10)
-        finally:
-            if process.poll() is None:
-                process.kill()
-                process.wait()
+    log_path = tmp_path / 'perception_node.log'
+    process = launch('perception_node', 'encoder_precision:=int8',
+                     env={'ACTIVELOC_CACHE': str(cache)})
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and 'building the int8' not in log_path.read_text():
+        assert process.poll() is None, log_path.read_text()
+        time.sleep(0.05)
+    time.sleep(1.0)                               # into the conversion and calibration
+    process.send_signal(sig)
+    code = process.wait(timeout=10)
     text = log_path.read_text()
     assert code == 0, text[-2000:]
     assert 'before the node was ready' in text and 'Traceback' not in text, text[-2000:]
