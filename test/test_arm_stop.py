@@ -55,6 +55,14 @@ def launch(tmp_path):
         log.close()
 
 
+def wait_for_log(process, log, text: str, timeout: float) -> None:
+    """Until ``text`` is in the node's log (at most ``timeout`` s); the node must live."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and text not in log.read_text():
+        assert process.poll() is None, log.read_text()
+        time.sleep(0.05)
+
+
 def interrupt(process, executor, timeout=15.0) -> int:
     """Ctrl-C, spinning our side meanwhile so the node's last messages arrive."""
     process.send_signal(signal.SIGINT)
@@ -131,9 +139,7 @@ def test_a_burst_of_sigterms_stops_a_node_cleanly(launch, tmp_path, module):
     overrides = ('backend:=sim',) if module == 'arm_node' else ('loop:=true',)
     process = launch(module, *overrides)
     log = tmp_path / f'{module}.log'
-    deadline = time.monotonic() + 30
-    while time.monotonic() < deadline and '[INFO]' not in log.read_text():
-        time.sleep(0.05)
+    wait_for_log(process, log, '[INFO]', 30)
     for _ in range(400):                  # spread over the node's stop (about a second)
         if process.poll() is not None:
             break
@@ -160,10 +166,7 @@ def test_a_stop_while_perception_builds_its_int8_encoder_ends_the_build(launch, 
     log_path = tmp_path / 'perception_node.log'
     process = launch('perception_node', 'encoder_precision:=int8',
                      env={'ACTIVELOC_CACHE': str(cache)})
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline and 'building the int8' not in log_path.read_text():
-        assert process.poll() is None, log_path.read_text()
-        time.sleep(0.05)
+    wait_for_log(process, log_path, 'building the int8', 60)
     time.sleep(1.0)                               # into the conversion and calibration
     process.send_signal(sig)
     code = process.wait(timeout=10)
