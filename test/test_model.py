@@ -95,6 +95,8 @@ def test_every_field_has_a_default_and_help_and_round_trips():
     ('input_aspect', 0.0),
     ('input_aspect', 5.0),
     ('input_aspect', float('inf')),
+    ('input_height', -16),
+    ('input_height', 2048),
     ('map_temperature', 0.0),
     ('optimizer', 'lbfgs'),
 ])
@@ -133,6 +135,23 @@ def test_the_grid_follows_the_input_aspect_and_the_mirrored_border_keeps_it(pad,
     result = [model.step(f) for f in clip(2)][-1]
     assert model.input_wh == wh and model.grid == grid and model.cells == grid[0] * grid[1]
     assert result.surprise_map.shape == grid
+
+
+@pytest.mark.parametrize('height, aspect, wh, grid', [(160, 1.0, (160, 160), (10, 10)),
+                                                      (160, 4 / 3, (208, 160), (10, 13)),
+                                                      (256, 1.0, (256, 256), (16, 16))])
+def test_the_grid_follows_the_input_height(height, aspect, wh, grid):
+    model = make(real=True, input_height=height, input_aspect=aspect)
+    result = [model.step(f) for f in clip(2)][-1]
+    assert model.input_wh == wh and model.grid == grid
+    assert result.surprise_map.shape == grid
+
+
+@pytest.mark.parametrize('height', [8, 150])
+def test_input_height_must_be_whole_cells(height):
+    with pytest.raises(ConfigError, match=r"'input_height' must be a multiple of the encoder "
+                                          r'stride 16 .*got ' + str(height)):
+        make(real=True, input_height=height)
 
 
 @pytest.mark.parametrize('encoder', ['efficientnet_lite0', 'vgg19'])

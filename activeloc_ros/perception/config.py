@@ -57,8 +57,13 @@ class PerceptionConfig:
         "paper's, as in ImageNet training) or reflect (mirrored picture at every layer: like "
         'encoder_pad the border cells see no zeros, but at no extra work)',
         one_of('zeros', 'reflect'))
+    input_height: int = _param(
+        0, 'height of the encoder input, px: a multiple of the encoder stride (16), one grid '
+        'row per 16 px; 0 = the encoder\'s own, 224 (the paper\'s, 14 rows). 160 (10 rows) '
+        'halves the encoder\'s work and the predictor\'s cells, and follows less accurately '
+        '(params/fast.yaml; README, Weights)', in_range(0, 1024))
     input_aspect: float = _param(
-        1.0, 'width over height of the encoder input: its height is the encoder\'s (224), '
+        1.0, 'width over height of the encoder input: its height is input_height\'s (224), '
         'its width the multiple of the encoder stride (16) nearest to height x this, and the '
         'grid has one column per 16 px. 1 = the paper\'s 224 x 224, which squashes a 4:3 '
         'frame to three quarters of its width; the camera\'s own aspect keeps its picture '

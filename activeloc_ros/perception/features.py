@@ -90,15 +90,20 @@ class Features:
             if self.frozen_encoder is self.encoder:
                 self.frozen_encoder = copy.deepcopy(self.encoder)
             self.frozen_encoder = self.frozen_encoder.to(torch.bfloat16)
-        height = int(encoder.input_size)
+        native = int(encoder.input_size)                        # 224
         self.channels = int(encoder.channels)
         with torch.inference_mode():                            # the grid the encoder makes
-            zeros = torch.zeros(1, 3, height, height)
+            zeros = torch.zeros(1, 3, native, native)
             rows = self._run(self.frozen_encoder, self.encoder.preprocess(zeros)).shape[-2]
-        self.stride = height // rows                            # input px per cell: 16
+        self.stride = native // rows                            # input px per cell: 16
+        height = cfg.input_height or native
+        if height % self.stride or height < self.stride:
+            raise ConfigError(f"perception parameter 'input_height' must be a multiple of the "
+                              f'encoder stride {self.stride} (0: the encoder\'s own '
+                              f'{native}), got {height}')
         width = max(1, round(height * cfg.input_aspect / self.stride)) * self.stride
         self.input_wh = (width, height)                         # (304, 224) at 4:3
-        self.grid = (rows, width // self.stride)                # (rows, cols): (14, 19)
+        self.grid = (height // self.stride, width // self.stride)   # (rows, cols): (14, 19)
         self.cells = self.grid[0] * self.grid[1]
         if cfg.encoder_pad % self.stride or cfg.encoder_pad >= height:
             raise ConfigError(f"perception parameter 'encoder_pad' must be a multiple of the "
