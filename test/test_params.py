@@ -60,6 +60,7 @@ def test_perception_yaml_repeats_the_model_defaults():
 @pytest.mark.parametrize('name, expected', [
     ('mirrored_border.yaml', {'encoder_pad': 32, 'conv_padding': 'zeros'}),
     ('two_lstms.yaml', {'layers': 2}),
+    ('fast.yaml', {'input_height': 160, 'layers': 2, 'location_prior': 3.57}),
 ])
 def test_each_other_configuration_passes_bringups_checks_and_sets_its_values(name, expected):
     from activeloc_ros.bringup import check_node_params, node_values, parse_args
@@ -67,6 +68,12 @@ def test_each_other_configuration_passes_bringups_checks_and_sets_its_values(nam
     check_node_params(parse_args(['--params', path]))      # raises on any bad key or value
     values = node_values('perception', [path])
     assert {key: values[key] for key in expected} == expected
+
+
+def test_the_fast_configuration_acts_only_on_maps_above_twice_its_uniform_peak():
+    """Its 10 x 10 grid's uniform map peaks at 1 / 100: the controller's min_peak follows."""
+    from activeloc_ros.bringup import node_values
+    assert node_values('controller', [str(PARAMS / 'fast.yaml')])['min_peak'] == 2 / 100
 
 
 # -- params files: nothing in them passes in silence (issue 13, item 9) ---------------------
