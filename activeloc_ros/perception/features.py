@@ -97,7 +97,7 @@ class Features:
             rows = self._run(self.frozen_encoder, self.encoder.preprocess(zeros)).shape[-2]
         self.stride = native // rows                            # input px per cell: 16
         height = cfg.input_height or native
-        if height % self.stride or height < self.stride:
+        if height % self.stride:
             raise ConfigError(f"perception parameter 'input_height' must be a multiple of the "
                               f'encoder stride {self.stride} (0: the encoder\'s own '
                               f'{native}), got {height}')
