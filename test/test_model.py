@@ -238,14 +238,22 @@ def test_the_region_location_is_the_centre_of_the_blob_round_the_peak():
     assert P.action_location(grid, 'region', 0.25) == pytest.approx((10.5, 5.5))
     head = P.action_location(grid, 'region', 0.25, region_share=0.7)   # the body is below
     assert head == pytest.approx((10.5, 2.5))
+    # three bars, 0.5 and 0.1 either side: the body stands above 0.4 and 0.5, not 0.6
+    spread = P.action_location(grid, 'region', 0.25, region_share=0.5, region_spread=0.1)
+    assert spread == pytest.approx((10.5, (5.5 + 5.5 + 2.5) / 3))
+    # bars beyond the range are kept within it: 0 (every connected cell) and 1 (the peak)
+    wide = P.action_location(grid, 'region', 0.25, region_share=0.5, region_spread=0.5)
+    assert wide == pytest.approx(((7.0 + 10.5 + 10.5) / 3, (7.0 + 5.5 + 2.5) / 3))
     flat = torch.full((14, 14), 1 / 196)        # no information: the middle
     assert P.action_location(flat, 'region', 0.25) == (7.0, 7.0)        # all one blob
     assert P.action_location(flat, 'region', 0.25, 5.0) == (7.0, 7.0)   # the prior's disc
+    assert P.action_location(flat, 'region', 0.25, 5.0, region_spread=0.1) == (7.0, 7.0)
 
 
 @pytest.mark.parametrize('settings', [
     {'location': 'mass', 'location_share': 0.0, 'location_floor': 'min'},
     {'location': 'region', 'location_region_share': 0.4},
+    {'location': 'region', 'location_region_share': 0.4, 'location_region_spread': 0.2},
 ])
 def test_the_model_reports_its_location_in_frame_pixels(settings):
     model = make(input_aspect=1.5, **settings)          # the tiny encoder's 96 x 64: 8 x 12
@@ -254,9 +262,7 @@ def test_the_model_reports_its_location_in_frame_pixels(settings):
     for frame in frames:
         res = model.step(frame)
     m = torch.from_numpy(res.surprise_map)
-    x, y = P.action_location(m, settings['location'], model.cfg.location_share,
-                             model.cfg.location_prior, model.cfg.location_floor,
-                             region_share=model.cfg.location_region_share)
+    x, y = P.configured_location(m, model.cfg)
     assert res.location_px == pytest.approx((x * 53 / 12, y * 37 / 8))
 
 

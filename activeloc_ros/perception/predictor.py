@@ -152,12 +152,14 @@ def surprise_map(e: torch.Tensor, temperature: float) -> torch.Tensor:
 def configured_location(grid: torch.Tensor, cfg: PerceptionConfig) -> tuple[float, float]:
     """`action_location` with the location settings of `cfg`."""
     return action_location(grid, cfg.location, cfg.location_share, cfg.location_prior,
-                           cfg.location_floor, region_share=cfg.location_region_share)
+                           cfg.location_floor, region_share=cfg.location_region_share,
+                           region_spread=cfg.location_region_spread)
 
 
 def action_location(grid: torch.Tensor, kind: str, share: float,
                     prior: float = 0.0, floor: str = 'zero', *,
-                    region_share: float = 0.5) -> tuple[float, float]:
+                    region_share: float = 0.5,
+                    region_spread: float = 0.0) -> tuple[float, float]:
     """(x, y) of the action on a (rows, cols) map, in cells (0.5 = the first cell's centre):
     'peak' the argmax cell's centre; 'mass' the centroid of the cells that reach `share` of
     the peak, each weighted by its map value (`floor` 'zero') or by its height above the
@@ -165,7 +167,9 @@ def action_location(grid: torch.Tensor, kind: str, share: float,
     'region' the centre of the box round the peak's blob (`metrics.blob_box` with
     `region_share`): the cells connected to the peak whose log stands at least that share
     of the way from the map's lowest cell up to its peak, the whole moving person rather
-    than the head and shoulders that are most surprising.
+    than the head and shoulders that are most surprising. With `region_spread` > 0, the
+    mean of that centre at three bars, `region_share` and `region_spread` below and above
+    it: a cell crossing one bar moves the location by a sixth of a cell, not half of one.
     With `prior` > 0 the map is first weighted by a Gaussian of that width (cells) on the
     grid's centre, where the camera looks."""
     rows, cols = grid.shape
@@ -177,11 +181,14 @@ def action_location(grid: torch.Tensor, kind: str, share: float,
         row, col = divmod(int(torch.argmax(weighted)), cols)
         return col + 0.5, row + 0.5
     if kind == 'region':
-        box = metrics.blob_box(weighted.numpy(), (cols, rows), share=region_share)
-        if box is None:
+        bars = ((region_share - region_spread, region_share, region_share + region_spread)
+                if region_spread > 0 else (region_share,))
+        boxes = [metrics.blob_box(weighted.numpy(), (cols, rows), share=min(max(bar, 0.0), 1.0))
+                 for bar in bars]
+        if boxes[0] is None:                    # no positive peak: every bar alike
             return cols / 2, rows / 2
-        x, y, w, h = box
-        return x + w / 2, y + h / 2
+        return (sum(x + w / 2 for x, _, w, _ in boxes) / len(boxes),
+                sum(y + h / 2 for _, y, _, h in boxes) / len(boxes))
     height = (grid - grid.min()) * near if floor == 'min' else weighted
     weight = torch.where(weighted >= share * weighted.max(), height, torch.zeros(()))
     total = weight.sum()
