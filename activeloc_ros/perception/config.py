@@ -169,7 +169,7 @@ class PerceptionConfig:
         'peak on a log scale (the prediction error\'s range), a cell must stand to join the '
         'peak\'s blob (0 = every connected cell, 1 = the peak alone)', in_range(0.0, 1.0))
     location_region_spread: float = _param(
-        0.0, 'with location region, the location is the mean of the box\'s centre at three '
+        0.1, 'with location region, the location is the mean of the box\'s centre at three '
         'bars: location_region_share and this much below and above it (each kept within '
         '0..1), so a cell that crosses one bar moves the location by a sixth of a cell, not '
         'by half of one (0 = the one bar)', in_range(0.0, 0.5))
