@@ -262,7 +262,10 @@ def test_the_model_reports_its_location_in_frame_pixels(settings):
     for frame in frames:
         res = model.step(frame)
     m = torch.from_numpy(res.surprise_map)
-    x, y = P.configured_location(m, model.cfg)
+    x, y = P.action_location(m, settings['location'], model.cfg.location_share,
+                             model.cfg.location_prior, model.cfg.location_floor,
+                             region_share=model.cfg.location_region_share,
+                             region_spread=model.cfg.location_region_spread)
     assert res.location_px == pytest.approx((x * 53 / 12, y * 37 / 8))
 
 
