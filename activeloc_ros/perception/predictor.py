@@ -183,7 +183,8 @@ def action_location(grid: torch.Tensor, kind: str, share: float,
     if kind == 'region':
         bars = ((region_share - region_spread, region_share, region_share + region_spread)
                 if region_spread > 0 else (region_share,))
-        boxes = [metrics.blob_box(weighted.numpy(), (cols, rows), share=min(max(bar, 0.0), 1.0))
+        heat = weighted.numpy()
+        boxes = [metrics.blob_box(heat, (cols, rows), share=min(max(bar, 0.0), 1.0))
                  for bar in bars]
         if boxes[0] is None:                    # no positive peak: every bar alike
             return cols / 2, rows / 2
