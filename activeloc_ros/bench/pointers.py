@@ -179,6 +179,24 @@ class FrameDiffPointer:
         return _map_pointing(self.diff.step(view.rgb), (w, h))
 
 
+class FlowPointer:
+    """The length of DIS dense optical flow, the camera's own motion taken out as for
+    framediff (`perception.motion.FlowMagnitude`): steers to the cell that moved most."""
+
+    name = 'flow'
+
+    def __init__(self):
+        from activeloc_ros.perception.motion import FlowMagnitude
+        self.flow = FlowMagnitude()
+
+    def reset(self, sequence: str) -> None:
+        self.flow.reset()
+
+    def locate(self, view: View) -> Pointing:
+        h, w = view.rgb.shape[:2]
+        return _map_pointing(self.flow.step(view.rgb), (w, h))
+
+
 class Mog2Pointer:
     """OpenCV's BackgroundSubtractorMOG2: steers to the centroid of the foreground. The
     background model starts again whenever the camera moved (the same ego-motion estimate

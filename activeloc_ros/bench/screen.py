@@ -32,97 +32,20 @@ from activeloc_ros.bench import (
 from activeloc_ros.bench.time_plots import time_plots
 from activeloc_ros.bench.video import (
     commit_video, discard_videos, H264Writer, temporary_path)
-from activeloc_ros.bench.pointers import (
-    ABLATIONS, CentrePointer, FrameDiffPointer, ModelPointer, Mog2Pointer, OraclePointer,
-    RandomPointer, TrackerMethod)
+from activeloc_ros.bench.methods import (
+    CONTROL_OPTIONS, controller_for, make_pointer, METHODS, MODEL_METHODS, params_file,
+    PD_OPTIONS)
+from activeloc_ros.bench.pointers import ModelPointer
 from activeloc_ros.closed_loop import FrameRecord, MODES, run_episode, screen_world
-from activeloc_ros.control import ControllerConfig, PD_VARIANTS, PDConfig
 from activeloc_ros.errors import ActivelocError, ConfigError, DataError
 from activeloc_ros.paths import write_atomic
 from activeloc_ros.progress import Progress
 from activeloc_ros.screen import AIM_LIMITS, ScreenConfig, VirtualScreen
 
-TRACKER_METHODS = ('tld', 'mil', 'mosse', 'kcf', 'csrt')
-MODEL_METHODS = ('ours', *(f'ours-{a}' for a in ABLATIONS if a != 'full'),
-                 *(f'ours-pd-{v}' for v, gains in PD_VARIANTS.items()
-                   if gains != (PDConfig.kp, PDConfig.kd)))
-MOTION_METHODS = ('framediff', 'mog2')     # unsupervised anchors on the picture's change
-METHODS = (*MODEL_METHODS, 'random', 'centre', 'oracle', *MOTION_METHODS, *TRACKER_METHODS)
 METRICS = (('aae_deg', 'AAE (deg)', 'lower is better'),
            ('auc_judd', 'AUC-Judd (%)', 'higher is better'),
            ('in_view', 'in view (%)', 'higher is better'),
            ('pointing_deg', 'pointing error (deg)', 'lower is better'))
-
-
-def method_parts(name: str) -> tuple[dict, str | None]:
-    """(PerceptionConfig overrides, PD variant or None for the default gains) of a model
-    method name."""
-    if name == 'ours':
-        return {}, None
-    if name.startswith('ours-pd-') and name[8:] in PD_VARIANTS:
-        return {}, name[8:]
-    if name.startswith('ours-') and name[5:] in ABLATIONS:
-        return dict(ABLATIONS[name[5:]]), None
-    raise ConfigError(f'unknown method {name!r}; known: {", ".join(METHODS)}')
-
-
-def make_pointer(name: str, settings: dict, seed: int, *, tracker_start: str = 'proposal'):
-    """The pointer of a method (model methods get `settings` + their ablation; trackers start
-    on an EdgeBoxes proposal, or with ``tracker_start='truth'`` on the target's true box)."""
-    if name in TRACKER_METHODS:
-        return TrackerMethod(name, start=tracker_start)
-    if name == 'random':
-        return RandomPointer(seed=seed)
-    if name == 'centre':
-        return CentrePointer()
-    if name == 'oracle':
-        return OraclePointer()
-    if name == 'framediff':
-        return FrameDiffPointer()
-    if name == 'mog2':
-        return Mog2Pointer()
-    overrides, _ = method_parts(name)
-    return ModelPointer(name, {'seed': seed, **settings, **overrides})
-
-
-PD_OPTIONS = ('kp', 'kd', 'dead_band', 'derivative', 'derivative_tau')
-CONTROL_OPTIONS = ('settle_time', 'watchdog_timeout', 'step_delay_ms', 'min_peak',
-                   'pan_limit_deg', 'tilt_limit_deg', 'confirm_deg')
-
-
-def method_pd(name: str, control: dict) -> PDConfig:
-    """The PD law of a method: its Table 3 variant's gains (whatever --control says of kp and
-    kd), else the default's, with the `PD_OPTIONS` among the --control settings."""
-    variant = method_parts(name)[1] if name in MODEL_METHODS else None
-    pd_options = {k: v for k, v in control.items() if k in PD_OPTIONS}
-    if variant:
-        return PDConfig.variant(variant, **{k: v for k, v in pd_options.items()
-                                            if k not in ('kp', 'kd')})
-    return PDConfig(**pd_options)
-
-
-def controller_for(name: str, control: dict, screen: VirtualScreen | None = None
-                   ) -> ControllerConfig:
-    """The controller of a method: its PD variant plus the --control settings; with a
-    `screen`, aimed no farther than its view stays on the screen (unless set; the
-    `--aim-limits screen` rig)."""
-    unknown = sorted(set(control) - set(PD_OPTIONS) - set(CONTROL_OPTIONS))
-    if unknown:
-        raise ConfigError(f'unknown --control settings {unknown}; known: '
-                          f'{", ".join(PD_OPTIONS + CONTROL_OPTIONS)}')
-    pd = method_pd(name, control)
-    options = {k: v for k, v in control.items() if k in CONTROL_OPTIONS}
-    if screen is not None:
-        pan, tilt = screen.aim_limits_deg()
-        options.setdefault('pan_limit_deg', pan)
-        options.setdefault('tilt_limit_deg', tilt)
-    if name not in MODEL_METHODS:
-        # the settle gate makes up for the surprise map's blindness to the camera's own
-        # motion; the baselines see no such thing and mostly do better without it (mean
-        # AAE over the dev set, 10 Hz camera, kd 0.1, no aim limits: oracle 6.0 vs 13.2
-        # deg, random 22.5 vs 25.4, kcf 24.4 vs 25.2; mosse is the exception, 26.4 vs 24.7)
-        options.setdefault('settle_time', 0.0)
-    return ControllerConfig(pd=pd, **options)
 
 
 # -- one run (method x sequence), in a worker process ------------------------------------------
@@ -408,6 +331,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--camera-fps', type=float, default=10.0, metavar='HZ',
                    help='frame rate of the virtual camera (default 10, the bundled bag\'s; '
                         '0: one picture per scene frame); the scene plays at its own rate')
+    p.add_argument('--params', metavar='FILE',
+                   help='a ROS 2 params file (as bringup --params): its perception section '
+                        'for every model method, its controller section for every method; '
+                        '--set and --control win over it')
     p.add_argument('--set', nargs='+', action='extend', metavar='KEY=VALUE', default=[],
                    help='PerceptionConfig fields for every model method, e.g. lr=1e-4')
     p.add_argument('--screen', nargs='+', action='extend', metavar='KEY=VALUE', default=[],
@@ -463,8 +390,9 @@ def run(args: argparse.Namespace) -> int:
                 raise ConfigError(f'unknown method {m!r}; known: {", ".join(METHODS)}')
         screen = key_values(args.screen, '--screen')
         geometry = VirtualScreen(ScreenConfig.from_dict(screen))
-        settings = key_values(args.set, '--set')
-        control = key_values(args.control, '--control')
+        settings, control = params_file(args.params) if args.params else ({}, {})
+        settings.update(key_values(args.set, '--set'))
+        control.update(key_values(args.control, '--control'))
         controller_for('ours', control)
         if any(m in MODEL_METHODS for m in methods):
             ModelPointer('check', {'seed': args.seed, **settings})  # weights, settings: now
@@ -499,7 +427,7 @@ def run(args: argparse.Namespace) -> int:
         'data': str(root), 'mode': args.mode, 'latency_ms': args.latency,
         'camera_fps': args.camera_fps,
         'screen': geometry.describe(),
-        'screen_config': screen, 'set': settings, 'seed': args.seed,
+        'screen_config': screen, 'params': args.params, 'set': settings, 'seed': args.seed,
         'control': control, 'aim_limits': args.aim_limits,
         'max_frames': args.max_frames, 'jobs': args.jobs,
         'seconds': round(time.monotonic() - started, 1)}

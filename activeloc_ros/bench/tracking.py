@@ -41,8 +41,9 @@ import numpy as np
 
 from activeloc_ros.bench import (
     check_seed, in_threads, key_values, names, output_dir, run_jobs)
-from activeloc_ros.bench import screen
-from activeloc_ros.bench.screen import method_pd, MODEL_METHODS, PD_OPTIONS, TRACKER_METHODS
+from activeloc_ros.bench import methods
+from activeloc_ros.bench.methods import (
+    method_pd, PD_OPTIONS, TABLE3_METHODS as MODEL_METHODS, TRACKER_METHODS)
 from activeloc_ros.bench.video import (
     commit_video, discard_videos, H264Writer, temporary_path)
 from activeloc_ros.closed_loop import FrameRecord, MODES, Pointing, run_episode
@@ -79,7 +80,7 @@ def make_pointer(method: str, settings: dict, seed: int):
     """The screen benchmark's pointer of a method, its tracker started on the true box."""
     if method not in METHODS:
         raise ConfigError(f'unknown method {method!r}; known: {", ".join(METHODS)}')
-    return screen.make_pointer(method, settings, seed, tracker_start='truth')
+    return methods.make_pointer(method, settings, seed, tracker_start='truth')
 
 
 class Remembering:

@@ -92,3 +92,52 @@ class FrameDifference:
             return None
         change = residual(previous, current, warp, tolerance_px=self.tolerance_px)
         return cell_means(change, self.grid)
+
+
+class FlowMagnitude:
+    """Dense optical flow (OpenCV's DIS) with the camera's own motion taken out as
+    `FrameDifference` takes it out: per grid cell, the mean length (pixels of the working
+    size) of the flow from the previous frame, warped into the new view, to this one.
+
+    :param size: square working size (the model's input, so its grid cells are the same).
+    """
+
+    def __init__(self, *, size: int = 224, grid: tuple[int, int] = (14, 14)):
+        self.size = size
+        self.grid = grid
+        self.ego = egomotion.EgoMotion(model='homography')
+        self.flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        self.reset()
+
+    def reset(self) -> None:
+        self.previous = None          # (S, S) uint8 grey of the previous frame
+        self.keys = None
+        self.moved = False
+
+    def step(self, rgb: np.ndarray) -> np.ndarray | None:
+        """(rows, cols) mean flow length per cell, px; None on the first frame."""
+        img = cv2.resize(np.asarray(rgb, dtype=np.uint8), (self.size, self.size),
+                         interpolation=cv2.INTER_AREA)
+        current = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+        keys = self.ego.keypoints(current)
+        warp = None
+        if self.keys is not None:
+            warp = self.ego.estimate(self.keys, keys, (self.size, self.size))
+        self.keys = keys
+        previous, self.previous = self.previous, current
+        self.moved = warp is not None
+        if previous is None:
+            return None
+        shape = (self.size, self.size)
+        seen = None
+        if warp is not None:
+            previous = cv2.warpPerspective(previous, warp, shape, flags=cv2.INTER_LINEAR,
+                                           borderMode=cv2.BORDER_REPLICATE)
+            seen = cv2.warpPerspective(np.ones(shape, np.uint8), warp, shape,
+                                       flags=cv2.INTER_NEAREST,
+                                       borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        flow = self.flow.calc(previous, current, None)
+        length = np.hypot(flow[..., 0], flow[..., 1]).astype(np.float32)
+        if seen is not None:      # what the old view did not see has no flow to measure
+            length[cv2.erode(seen, np.ones((3, 3), np.uint8)) == 0] = 0.0
+        return cell_means(length, self.grid)
