@@ -10,6 +10,8 @@ COMMANDS = {
                'projected-screen experiment, closed loop (paper Table 2)'),
     'tracking': ('activeloc_ros.bench.tracking',
                  'simulated active tracking, mobile base (paper Tables 1 and 3)'),
+    'compare': ('activeloc_ros.bench.compare',
+                'selection protocol: is a configuration better than another, or luck'),
     'graph-check': ('activeloc_ros.bench.graph_check',
                     'does the ROS graph in lockstep move the camera as the benchmark does'),
 }
