@@ -65,7 +65,7 @@ def test_sim_arm_follows_in_whole_degrees_at_the_servos_speed(arm_graph):
     executor, arm, probe = arm_graph('backend:=sim', 'step_delay_ms:=20')
     assert spin_until(executor, lambda: probe.joints is not None, 5.0)
     assert probe.joints == pytest.approx(HOME_DEG)
-    target = (150.0, 100.0, 45.0, 45.0, 90.0, 73.0)
+    target = (150.0, 90.0, 45.0, 100.0, 90.0, 73.0)   # the aiming joints: base, wrist_ver
     probe.commands.publish(command(target))
     assert spin_until(executor, lambda: probe.joints == pytest.approx(target), 5.0)
     for (t0, q0), (t1, q1) in zip(probe.states, probe.states[1:]):
@@ -82,9 +82,9 @@ def test_sim_arm_clamps_and_rejects_bad_commands(arm_graph):
     assert spin_until(executor, lambda: arm.rejected == 1, 5.0)
     probe.commands.publish(command([91.0, 90.0], names=['base', 'neck']))
     assert spin_until(executor, lambda: arm.rejected == 2, 5.0)
-    probe.commands.publish(command([250.0, 0.0], names=['base', 'shoulder']))  # partial
+    probe.commands.publish(command([250.0, -30.0], names=['base', 'wrist_ver']))  # partial
     assert spin_until(executor, lambda: arm.clamped == 1, 5.0)
-    assert arm.sim.target == (180, 15) + tuple(HOME_DEG[2:])
+    assert arm.sim.target == (180, 90, 45, 0, 90, 73)
     probe.commands.publish(JointState(position=[math.radians(q) for q in HOME_DEG]))
     assert spin_until(executor, lambda: arm.sim.target == HOME_DEG, 5.0)  # unnamed: in order
 
@@ -215,7 +215,43 @@ def test_random_commands_never_leave_the_joint_limits(arm_graph):
                      for _ in range(rng.choice([n, len(names), 6]))]
         arm.on_command(JointState(name=names, position=positions))
         assert within_limits(arm.sim.target)
-    assert arm.rejected > 100 and arm.clamped > 100
+    assert arm.rejected > 100 and arm.clamped > 10 and arm.refused > 100
+    assert arm.sim.target[5] == HOME_DEG[5]          # the gripper never moved
+
+
+@pytest.mark.parametrize('backend', ['sim', 'node'])
+def test_a_command_that_moves_a_joint_which_does_not_aim_is_refused(arm_graph, context,
+                                                                     backend):
+    """The foreign pose of the hostile test: every joint outside its limits, the gripper
+    open. The arm (or the virtual camera's arm) refuses all of it and says why."""
+    foreign = (250.0, 0.0, -30.0, 200.0, 190.0, 0.0)
+    if backend == 'sim':
+        executor, arm, probe = arm_graph('backend:=sim')
+        target = lambda: arm.sim.target    # noqa: E731
+    else:
+        from activeloc_ros.nodes.sim_node import SimNode
+        arm = SimNode(context=context, cli_args=params_args('sim', 'scene:=bag:bags/vtest'))
+        probe = Probe(context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(arm)
+        executor.add_node(probe.node)
+        assert spin_until(executor, lambda: probe.commands.get_subscription_count() > 0, 5.0)
+        target = lambda: arm.world.arm.target    # noqa: E731
+    try:
+        for count in range(1, 6):
+            probe.commands.publish(command(foreign))
+            assert spin_until(executor, lambda: arm.refused == count, 5.0)
+        assert target() == HOME_DEG
+        probe.commands.publish(command((100.0, 90.0, 45.0, 50.0, 90.0, 73.0)))
+        assert spin_until(executor, lambda: target() == (100, 90, 45, 50, 90, 73), 5.0)
+        probe.commands.publish(command((250.0, 90.0, 45.0, 50.0, 90.0, 73.0)))
+        assert spin_until(executor, lambda: arm.clamped == 1, 5.0)   # said, and clamped
+        assert target()[0] == 180
+    finally:
+        if backend != 'sim':
+            executor.shutdown()
+            arm.destroy_node()
+            probe.node.destroy_node()
 
 
 # -- run-time parameters (item 8) -----------------------------------------------------------

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from activeloc_ros.control import (
-    angular_error, ArmMapping, ControllerConfig, HOME_DEG, Intrinsics, LatencyStats,
+    angular_error, ArmMapping, ControllerConfig, HOME_DEG, Intrinsics, JOINT_NAMES, LatencyStats,
     PD_VARIANTS, PDConfig, PDController, PoseHistory, ReactiveController)
 from activeloc_ros.errors import ConfigError
 
@@ -312,6 +312,28 @@ def test_watchdog_holds_once_then_stays_silent():
     assert hold is not None and hold.reason == 'hold' and ctl.state == 'holding'
     assert hold.joints_deg[0] == pytest.approx(HOME_DEG[0] + 7)   # where the arm is
     assert all(ctl.tick(t) is None for t in (0.6, 1.0, 5.0, 50.0))  # no drift afterwards
+
+
+@pytest.mark.parametrize('before', ['hold', 'dead band', 'track'])
+def test_a_foreign_pose_never_reaches_the_joints_that_do_not_aim(before):
+    """The hostile test's foreign command, reported back as the arm's state: the controller
+    still commands the gripper and the other fixed joints at home, whatever it sends."""
+    ctl = make_controller(watchdog_timeout=0.5,
+                          pd=PDConfig(kp=1.0, kd=0.0, dead_band=math.radians(2.0)))
+    foreign = (171.0, 15.0, 0.0, 151.0, 180.0, 10.0)
+    for i in range(5):
+        ctl.observe(foreign, 0.1 * i)
+    if before == 'hold':
+        ctl.on_location(pixel_for(0.0), D435.cy, 0.4, 0.4)
+        cmd = ctl.tick(1.0)
+    else:
+        pan = 1.0 if before == 'dead band' else 10.0
+        cmd = ctl.on_location(pixel_for(pan), D435.cy, 0.4, 5.0)
+    assert cmd is not None
+    fixed = [i for i, n in enumerate(JOINT_NAMES) if n not in ('base', 'wrist_ver')]
+    assert [cmd.joints_deg[i] for i in fixed] == pytest.approx([HOME_DEG[i] for i in fixed])
+    assert cmd.joints_deg[5] == HOME_DEG[5]            # the gripper holding the camera
+    assert cmd.joints_deg[0] > 165                     # the aiming joints it does take
 
 
 def test_after_the_clock_runs_back_a_restart_tracks_again_from_the_last_command():

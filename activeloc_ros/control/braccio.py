@@ -82,6 +82,18 @@ def check_pose(joints_deg: Sequence[float], what: str = 'pose') -> tuple[float, 
     return pose
 
 
+def fixed_moves(target_deg: Sequence[float], current_deg: Sequence[float], *,
+                home_deg: Sequence[float], aiming: Sequence[str],
+                tolerance: float = 0.5) -> dict[str, float]:
+    """The joints not in ``aiming`` that ``target_deg`` would move away from both their home
+    angle and ``current_deg``: name -> target, degrees. A command with any is refused
+    (moving such a joint towards home, or leaving it, is allowed): nobody but the
+    configuration moves the gripper that holds the camera."""
+    return {name: float(q) for name, q, now, h in
+            zip(JOINT_NAMES, target_deg, current_deg, home_deg)
+            if name not in aiming and abs(q - h) > tolerance and abs(q - now) > tolerance}
+
+
 @dataclass(frozen=True)
 class ArmMapping:
     """Camera pan/tilt <-> joint angles around a home pose.
@@ -123,6 +135,25 @@ class ArmMapping:
         for name, gain in zip(self.tilt_joints, self.tilt_gains):
             q[self._index[name]] += gain * math.degrees(tilt)
         return tuple(q)
+
+    @property
+    def aiming_joints(self) -> tuple[str, ...]:
+        """The joints that aim the camera; every other one stays at home."""
+        return (self.pan_joint, *self.tilt_joints)
+
+    def aim_only(self, joints_deg: Sequence[float]) -> tuple[float, ...]:
+        """``joints_deg`` with every joint that does not aim the camera at its home angle: a
+        pose reported or commanded by anyone else never moves those (the gripper holds the
+        camera)."""
+        aiming = self.aiming_joints
+        return tuple(float(q) if name in aiming else h
+                     for name, q, h in zip(JOINT_NAMES, joints_deg, self.home_deg))
+
+    def fixed_moves(self, target_deg: Sequence[float], current_deg: Sequence[float]
+                    ) -> dict[str, float]:
+        """`fixed_moves` of this mapping's home pose and aiming joints."""
+        return fixed_moves(target_deg, current_deg, home_deg=self.home_deg,
+                           aiming=self.aiming_joints)
 
     def pan_tilt(self, joints_deg: Sequence[float]) -> tuple[float, float]:
         """Camera (pan, tilt) in radians of a joint pose (least squares over the tilt joints)."""

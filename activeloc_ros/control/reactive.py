@@ -219,8 +219,8 @@ class ReactiveController:
         self.config = config
         self.mapping = config.mapping
         self.pd = PDController(config.pd)
-        start = check_pose(start_deg if start_deg is not None else config.mapping.home_deg,
-                           'start pose')
+        start = config.mapping.aim_only(check_pose(
+            start_deg if start_deg is not None else config.mapping.home_deg, 'start pose'))
         self.guard = JointGuard(start, t0, step_delay_ms=config.step_delay_ms)
         self.history = PoseHistory()
         self.latency = LatencyStats()
@@ -250,7 +250,9 @@ class ReactiveController:
         pose = tuple(joints_deg)
         if len(pose) != len(self.guard.last_deg) or not all(math.isfinite(q) for q in pose):
             return
-        pose = clamp_to_limits(pose)  # a servo cannot be outside its range
+        # a servo cannot be outside its range; the joints that do not aim the camera are
+        # never taken from a state (a foreign command may have moved them)
+        pose = self.mapping.aim_only(clamp_to_limits(pose))
         if self.history.add(t, pose) and self.commands == 0:
             self.guard.reset(pose, t)
 
@@ -366,6 +368,7 @@ class ReactiveController:
 
     def _emit(self, target: Sequence[float], t_now: float, reason: str,
               stamp: float | None) -> Command:
+        target = self.mapping.aim_only(target)
         joints = self.guard.limit(target, t_now)
         short = max(abs(a - b) for a, b in zip(target, joints)) > 0.05
         self._goal = tuple(target) if short and reason in ('track', 'continue') else None

@@ -28,12 +28,13 @@ from sensor_msgs.msg import JointState
 
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
 from activeloc_ros.control import (
-    clamp_to_limits, HOME_DEG, JOINT_NAMES, pose_problem, SimArm)
+    clamp_to_limits, fixed_moves, HOME_DEG, JOINT_NAMES, pose_problem, SimArm)
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.serial_link import BraccioLink
 from activeloc_ros.nodes.clock import Rewinds
 from activeloc_ros.nodes.messages import joint_state
 from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
+from activeloc_ros.nodes.settings import MAPPING_PARAMS
 
 
 # Set at run time, a parameter applies at once, except those that fix the hardware or the
@@ -45,6 +46,9 @@ PARAMS = (
     Param('step_delay_ms', 20, 'Servo step delay, ms per degree (sim; must match the sketch)',
           in_range(*STEP_DELAY_MS_RANGE), read_only=True),
     Param('home_deg', list(HOME_DEG), 'Home pose, degrees', pose_problem),
+    # the joints that aim the camera (params/robot.yaml): a command that moves any other
+    # joint away from home is refused, the gripper holding the camera above all
+    *(p for p in MAPPING_PARAMS if p.name in ('pan_joint', 'tilt_joints')),
     Param('sim_start_deg', list(HOME_DEG), 'Pose the simulated arm starts in, degrees',
           pose_problem, read_only=True),
     Param('stop_mode', 'hold', "On shutdown: 'hold' stops where it is, 'home' goes home "
@@ -108,6 +112,8 @@ class ArmNode(Node):
         self.home = tuple(float(q) for q in values['home_deg'])
         self.rejected = 0
         self.clamped = 0
+        self.refused = 0
+        self.aiming = (values['pan_joint'], *values['tilt_joints'])
         self.stopping = False
         self._stop_goal: tuple[float, ...] | None = None
         self._stop_pose: tuple[float, ...] | None = None
@@ -220,11 +226,23 @@ class ArmNode(Node):
             self.get_logger().warning(f'ignored a malformed joint command: {why} '
                                       f'({self.rejected} so far)', throttle_duration_sec=5.0)
             return
+        moved = fixed_moves(target, self._target(), home_deg=self.home, aiming=self.aiming)
+        if moved:
+            self.refused += 1
+            self.get_logger().warning(
+                'refused a joint command that moves ' + ', '.join(
+                    f'{n} to {q:.1f} deg' for n, q in moved.items())
+                + f': only {", ".join(self.aiming)} aim the camera, the other joints stay '
+                f'at home (params/robot.yaml) ({self.refused} refused so far)',
+                throttle_duration_sec=5.0)
+            return
         safe = clamp_to_limits(target)
         if safe != target:
             self.clamped += 1
-            self.get_logger().warning(f'clamped joint commands outside the limits '
-                                      f'({self.clamped} so far)', throttle_duration_sec=5.0)
+            self.get_logger().warning(
+                'clamped a joint command outside the limits: ' + ', '.join(
+                    f'{n} {q:.1f} -> {c:.1f} deg' for n, q, c in zip(JOINT_NAMES, target, safe)
+                    if q != c) + f' ({self.clamped} so far)', throttle_duration_sec=5.0)
         self._send(safe)
 
     def on_poll(self) -> None:
@@ -264,7 +282,8 @@ class ArmNode(Node):
         """The link's health on /diagnostics (diagnostic_msgs), as drivers do."""
         status = DiagnosticStatus(name=f'{self.get_name()}: ' + (
             'serial link' if self.link else 'simulated servos'))
-        counts = {'rejected commands': self.rejected, 'clamped commands': self.clamped}
+        counts = {'rejected commands': self.rejected, 'clamped commands': self.clamped,
+                  'refused commands (a joint that does not aim the camera)': self.refused}
         if self.link is None:
             status.level, status.message, status.hardware_id = (
                 DiagnosticStatus.OK, 'simulated', 'sim')

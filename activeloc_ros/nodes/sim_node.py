@@ -25,7 +25,7 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import CameraInfo, Image, JointState
 
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
-from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
+from activeloc_ros.control.braccio import clamp_to_limits, JOINT_NAMES, STEP_DELAY_MS_RANGE
 from activeloc_ros.data import FrameTruth
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.images import rgb_to_image_fields
@@ -121,6 +121,8 @@ class SimNode(Node):
         self.pending = None               # real time: the next scene frame, when it is due
         self.published = 0
         self.rejected = 0
+        self.refused = 0
+        self.clamped = 0
         self.finished = False
         self.failure: str | None = None   # why the stream ended in error (run() exits 1)
         self.started_at = time.monotonic()
@@ -159,10 +161,33 @@ class SimNode(Node):
                 self.get_logger().warning(
                     'ignored a joint command without six finite joint angles by name '
                     f'({self.rejected} so far)', throttle_duration_sec=5.0)
-            elif not self._closed:
-                self.world.act(joints, self._now())   # clamped into the joint limits
+            elif not self._closed and self._acceptable(joints):
+                self.world.act(joints, self._now())
             if self.lockstep is not None:
                 self.lockstep.on_command(stamp_ns(msg.header.stamp))
+
+    def _acceptable(self, joints: tuple[float, ...]) -> bool:
+        """Refuse (and say so) a command that moves a joint which does not aim the camera;
+        say so when one is clamped into the joint limits, which the arm then does."""
+        mapping = self.world.screen.mapping
+        moved = mapping.fixed_moves(joints, self.world.arm.target)
+        if moved:
+            self.refused += 1
+            self.get_logger().warning(
+                'refused a joint command that moves ' + ', '.join(
+                    f'{n} to {q:.1f} deg' for n, q in moved.items())
+                + f': only {", ".join(mapping.aiming_joints)} aim the camera, the other '
+                f'joints stay at home (params/robot.yaml) ({self.refused} refused so far)',
+                throttle_duration_sec=5.0)
+            return False
+        safe = clamp_to_limits(joints)
+        if safe != tuple(joints):
+            self.clamped += 1
+            self.get_logger().warning(
+                'clamped a joint command outside the limits: ' + ', '.join(
+                    f'{n} {q:.1f} -> {c:.1f} deg' for n, q, c in zip(JOINT_NAMES, joints, safe)
+                    if q != c) + f' ({self.clamped} so far)', throttle_duration_sec=5.0)
+        return True
 
     def on_location(self, msg: PointStamped) -> None:
         with self._lock:
