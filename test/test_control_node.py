@@ -41,8 +41,9 @@ class Probe:
         self.node.create_subscription(JointState, 'joint_commands', self.commands.append,
                                       QoSProfile(depth=100))
 
-    def send_location(self, u, v, stamp_s, peak=1.0):
+    def send_location(self, u, v, stamp_s, peak=1.0, frame=''):
         msg = PointStamped()
+        msg.header.frame_id = frame
         msg.header.stamp = Time(sec=int(stamp_s), nanosec=int(stamp_s % 1 * 1e9))
         msg.point.x, msg.point.y, msg.point.z = float(u), float(v), float(peak)
         self.location.publish(msg)
@@ -116,6 +117,21 @@ def test_nan_and_absurd_locations_are_ignored(graph):
     probe.send_location(100.0, 100.0, t + 1.0)
     assert spin_until(executor, lambda: probe.commands, 5.0)
     assert len(probe.commands) == 1 and probe.commands[0].header.stamp.sec == int(t + 1.0)
+
+
+def test_a_location_in_a_frame_not_the_cameras_is_ignored(graph):
+    executor, controller, probe = graph()
+    info = camera_info()
+    info.header.frame_id = 'camera_color_optical_frame'
+    probe.info.publish(info)
+    assert spin_until(executor, lambda: controller._camera_frame == info.header.frame_id, 5.0)
+    t = probe.now()
+    probe.send_location(CX - FX * math.tan(math.radians(10.0)), CY, t, frame='some_other_frame')
+    assert spin_until(executor, lambda: controller.core.ignored.get('foreign frame') == 1, 5.0)
+    assert not probe.commands
+    probe.send_location(CX - FX * math.tan(math.radians(10.0)), CY, t + 0.1,
+                        frame=info.header.frame_id)
+    assert spin_until(executor, lambda: probe.commands, 5.0)
 
 
 def test_watchdog_holds_once_when_locations_stop(graph):

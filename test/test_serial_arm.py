@@ -154,6 +154,23 @@ def test_noise_malformed_and_out_of_range_frames_are_counted_and_ignored(bench):
     assert bench.link.joints == HOME_DEG  # garbage never became a state
 
 
+def test_a_state_faster_than_the_servos_is_refused_as_implausible(bench):
+    """Serial garbage that happens to parse as a state (the hostile test: a 750 deg/s jump)
+    never becomes the arm's state; the real echo that follows does."""
+    bench.run(0.2)
+    here = bench.link.joints
+    bench.emulator.inject(b'<s,170,40,100,10,150,20>')
+    bench.run(0.1, until=lambda: bench.link.stats.implausible > 0)
+    assert bench.link.stats.implausible == 1
+    assert bench.link.joints == here and 'faster than the servos' in bench.link.stats.last_bad
+    bench.run(0.1)
+    assert bench.link.joints == here and bench.link.stats.states > 3   # the echo goes on
+    bench.link.command([30, 40, 180, 170, 0, 73])                      # real motion is
+    bench.run(3.0)                                                     # believed
+    assert bench.link.joints == (30, 40, 180, 170, 0, 73)
+    assert bench.link.stats.implausible == 1
+
+
 def test_a_silent_arm_is_detected_and_reconnected(bench):
     bench.run(0.1)
     bench.link.command(HOME_DEG)

@@ -244,7 +244,7 @@ class BaseController:
         before = [h for s, h in self.yaw if s <= t]
         return before[-1] if before else (self.yaw[0][1] if self.yaw else 0.0)
 
-    def _ignore(self, reason: str, t_now: float) -> BaseCommand | None:
+    def ignore(self, reason: str, t_now: float) -> BaseCommand | None:
         self.ignored[reason] = self.ignored.get(reason, 0) + 1
         return self.tick(t_now)
 
@@ -257,10 +257,10 @@ class BaseController:
         problem = location_problem(u, v, t_capture, t_now, intrinsics=intr, peak=peak,
                                    min_peak=cfg.min_peak, last_capture=self._last_capture)
         if problem is not None:
-            return self._ignore(problem, t_now)
+            return self.ignore(problem, t_now)
         error, _ = angular_error(u, v, intr, camera_tilt=math.radians(cfg.camera_tilt_deg))
         if not math.isfinite(error):                  # never into the PD: NaN would stay
-            return self._ignore('bad geometry', t_now)
+            return self.ignore('bad geometry', t_now)
         if t_now - self._last_accept > cfg.watchdog_timeout:
             self.pd.reset()
         self._last_capture, self._last_accept = t_capture, t_now

@@ -269,7 +269,7 @@ class ReactiveController:
         self._holding = False
         self._goal = self._seen = None
 
-    def _ignore(self, reason: str, t_now: float) -> Command | None:
+    def ignore(self, reason: str, t_now: float) -> Command | None:
         """Count an ignored location; the watchdog's answer to it, else the rest of a move
         the servos' speed cut short."""
         self.ignored[reason] = self.ignored.get(reason, 0) + 1
@@ -314,20 +314,20 @@ class ReactiveController:
                                    min_peak=self.config.min_peak,
                                    last_capture=self._last_capture)
         if problem is not None:
-            return self._ignore(problem, t_now)
+            return self.ignore(problem, t_now)
         if self.config.settle_time > 0 and self._moved(t_capture):
             self._seen = None
-            return self._ignore('camera moving', t_now)
+            return self.ignore('camera moving', t_now)
         if self.config.confirm_deg > 0 and self._goal is not None:
             self._seen = None                # a saccade once decided runs to its end
-            return self._ignore('saccade running', t_now)
+            return self.ignore('saccade running', t_now)
         pose = self._pose_at(t_capture)
         pan, tilt = self.mapping.pan_tilt(pose)
         error = angular_error(u, v, intr, camera_tilt=tilt)
         if not all(math.isfinite(e) for e in error):   # never into the PD: NaN would stay
-            return self._ignore('bad geometry', t_now)
+            return self.ignore('bad geometry', t_now)
         if not self._confirmed(pan + error[0], tilt + error[1], error):
-            return self._ignore('unconfirmed', t_now)
+            return self.ignore('unconfirmed', t_now)
         if self._holding or t_now - self._last_accept > self.config.watchdog_timeout:
             self.pd.reset()  # a fresh start: no derivative across a gap
         self._holding = False

@@ -43,6 +43,7 @@ class LinkStats:
     noise_bytes: int = 0
     bad_frames: int = 0
     rejected: int = 0  # '<e>' answers: the sketch refused one of our frames
+    implausible: int = 0  # states that moved faster than the servos can: not the arm's
     writes: int = 0    # '<w>' commands sent
     blocked_writes: int = 0
     connects: int = 0
@@ -51,7 +52,7 @@ class LinkStats:
 
     @property
     def problems(self) -> int:
-        return self.noise_bytes + self.bad_frames + self.rejected
+        return self.noise_bytes + self.bad_frames + self.rejected + self.implausible
 
 
 class BraccioLink:
@@ -67,7 +68,7 @@ class BraccioLink:
     def __init__(self, path: str, *, baud: int = protocol.BAUD, poll_period: float = 0.02,
                  reply_timeout: float = 0.2, silence_timeout: float = 1.0,
                  handshake_timeout: float = 4.0, reconnect_period: float = 1.0,
-                 handshake_period: float = 0.25):
+                 handshake_period: float = 0.25, max_speed_deg_s: float = 50.0):
         for name, value in (('poll_period', poll_period), ('reply_timeout', reply_timeout),
                             ('silence_timeout', silence_timeout),
                             ('handshake_timeout', handshake_timeout),
@@ -75,6 +76,8 @@ class BraccioLink:
                             ('handshake_period', handshake_period)):
             if not math.isfinite(value) or value <= 0:
                 raise ConfigError(f'{name} must be > 0 s, got {value}')
+        if not (math.isfinite(max_speed_deg_s) and max_speed_deg_s > 0):
+            raise ConfigError(f'max_speed_deg_s must be > 0, got {max_speed_deg_s}')
         if baud not in BAUDS:
             raise ConfigError(f'unsupported baud rate {baud}; use one of {list(BAUDS)}')
         self.path = path
@@ -85,6 +88,7 @@ class BraccioLink:
         self.handshake_timeout = handshake_timeout
         self.reconnect_period = reconnect_period
         self.handshake_period = handshake_period
+        self.max_speed_deg_s = max_speed_deg_s
         self.stats = LinkStats()
         self.state = 'closed'
         self.joints: tuple[int, ...] | None = None
@@ -156,6 +160,17 @@ class BraccioLink:
         self._port = None
         self.state = 'closed'
 
+    def _plausible(self, joints: tuple[int, ...], now: float) -> bool:
+        """Could the servos have gone from the last state to ``joints`` by ``now``? A frame
+        that passes the checksum-free protocol by chance usually could not. (One whole
+        degree of rounding, and a poll's lateness, are slack.) The allowance grows with
+        the time since the last state, so a refused arm is believed again soon."""
+        if self.joints is None:
+            return True
+        dt = max(now - self.joints_time, 0.0) + self.poll_period
+        allowed = self.max_speed_deg_s * dt + 1.0
+        return max(abs(a - b) for a, b in zip(joints, self.joints)) <= allowed
+
     def _open(self, now: float, events: list[str]) -> None:
         try:
             self._port = open_serial(self.path, self.baud)
@@ -167,6 +182,7 @@ class BraccioLink:
             return
         self._open_failed = False
         self.state = 'handshake'
+        self.joints = None           # whatever the arm did while the link was down
         self._t_opened = self._last_rx = now
         self._reader = protocol.FrameReader()
         self._tx.clear()
@@ -216,6 +232,11 @@ class BraccioLink:
         elif frame.kind == 's' and self.state == 'connected':
             self._last_rx = now
             self._awaiting_since = None
+            if not self._plausible(frame.joints, now):
+                self.stats.implausible += 1
+                self.stats.last_bad = (f'a state {frame.joints} that moved faster than the '
+                                       f'servos ({self.max_speed_deg_s:g} deg/s)')
+                return
             self.joints = frame.joints
             self.joints_time = now
             self._write_unanswered = False

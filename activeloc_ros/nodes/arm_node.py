@@ -29,7 +29,7 @@ from sensor_msgs.msg import JointState
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
 from activeloc_ros.control import (
     clamp_to_limits, fixed_moves, HOME_DEG, JOINT_NAMES, pose_problem, SimArm)
-from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
+from activeloc_ros.control.braccio import speed_deg_s, STEP_DELAY_MS_RANGE
 from activeloc_ros.control.serial_link import BraccioLink
 from activeloc_ros.nodes.clock import Rewinds
 from activeloc_ros.nodes.messages import joint_state
@@ -137,7 +137,8 @@ class ArmNode(Node):
                 values['port'], baud=values['baud'], poll_period=values['poll_period'],
                 silence_timeout=values['silence_timeout'],
                 reconnect_period=values['reconnect_period'],
-                handshake_timeout=values['handshake_timeout'])
+                handshake_timeout=values['handshake_timeout'],
+                max_speed_deg_s=speed_deg_s(values['step_delay_ms']))
             self.create_timer(values['poll_period'], self.on_poll)
 
         self.publisher = self.create_publisher(JointState, 'joint_states', 10)
@@ -258,7 +259,8 @@ class ArmNode(Node):
             s = self.link.stats
             self.get_logger().warning(
                 f'serial link: ignored {s.noise_bytes} noise bytes, {s.bad_frames} bad '
-                f'frames, {s.rejected} refused commands (last: {s.last_bad or "-"})',
+                f'frames, {s.implausible} implausible states, {s.rejected} refused '
+                f'commands (last: {s.last_bad or "-"})',
                 throttle_duration_sec=5.0)
 
     def _watch_link(self, now: float) -> None:
@@ -302,7 +304,8 @@ class ArmNode(Node):
                            'last state age (s)': f'{age:.2f}' if math.isfinite(age) else '-',
                            'connects': s.connects, 'losses': s.losses,
                            'noise bytes': s.noise_bytes, 'bad frames': s.bad_frames,
-                           'commands refused by the sketch': s.rejected})
+                           'commands refused by the sketch': s.rejected,
+                           'implausible states refused': s.implausible})
         status.values = [KeyValue(key=k, value=str(v)) for k, v in counts.items()]
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()

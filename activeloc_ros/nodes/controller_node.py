@@ -204,6 +204,7 @@ class ControllerNode(Node):
         self._state = self.core.state
         self._ignored_logged = 0
         self._info_key = None
+        self._camera_frame: str | None = None    # CameraInfo's frame_id, the optical frame
         self._lock = threading.Lock()  # stop_on_purpose may come from another thread
         self.stopped = False
         self._early: PointStamped | None = None   # simulated time: ahead of the arm's state
@@ -288,6 +289,10 @@ class ControllerNode(Node):
     # -- inputs ----------------------------------------------------------------------------
 
     def on_camera_info(self, msg: CameraInfo) -> None:
+        if msg.header.frame_id != self._camera_frame:
+            self._camera_frame = msg.header.frame_id
+            self.get_logger().info(f'camera optical frame {self._camera_frame!r}: locations '
+                                   'in any other frame are ignored')
         key = (tuple(msg.k), msg.width, msg.height, tuple(msg.d), msg.distortion_model,
                msg.binning_x, msg.binning_y, msg.roi.x_offset, msg.roi.y_offset,
                msg.roi.width, msg.roi.height)
@@ -391,8 +396,16 @@ class ControllerNode(Node):
             # simulated time a command is never made before its frame (closed_loop)
             now = max(now, t_capture)
         box = self._regions.pop(stamp_ns(msg.header.stamp), None)
-        command = self.core.on_location(msg.point.x, msg.point.y, t_capture, now,
-                                        peak=msg.point.z, box=box)
+        frame = msg.header.frame_id
+        if self._camera_frame is not None and frame != self._camera_frame:
+            # pixels of another image: acting on them would aim at nothing
+            self.get_logger().warning(
+                f'ignored action locations in frame {frame!r}, not the camera\'s '
+                f'{self._camera_frame!r}', throttle_duration_sec=5.0)
+            command = self.core.ignore('foreign frame', now)
+        else:
+            command = self.core.on_location(msg.point.x, msg.point.y, t_capture, now,
+                                            peak=msg.point.z, box=box)
         if command is not None:        # its own, the watchdog's hold or a move's rest
             self._publish(command, msg.header.stamp)
         if command is None or command.reason != 'track':
