@@ -91,6 +91,9 @@ ARM_STALE_S = 2.0             # realtime: no joint_states for this long at the e
 #                               (an arm node's; the sim's arm ends with its scene)
 # A node's log line that bringup repeats on its console: errors, not warnings.
 ERROR_LINE = re.compile(r'\[(ERROR|FATAL)\]|^error:|^\w*Error\b|^Traceback')
+# and the warnings a node prints about itself (e.g. an encoder run slower than asked): shown,
+# not counted as errors
+WARNING_LINE = re.compile(r'^warning:')
 MAX_ECHOED = 10               # error lines repeated per node; the rest stay in its log
 
 
@@ -552,13 +555,13 @@ class Child:
     def tail(self, lines: int = 15) -> str:
         return '\n'.join(self.log_path.read_text(errors='replace').splitlines()[-lines:])
 
-    def errors(self) -> list[str]:
-        """The error lines of the node's log (ERROR_LINE)."""
+    def errors(self, pattern: re.Pattern = ERROR_LINE) -> list[str]:
+        """The error lines of the node's log (ERROR_LINE), or those ``pattern`` finds."""
         try:
             text = self.log_path.read_text(errors='replace')
         except OSError:
             return []
-        return [line for line in text.splitlines() if ERROR_LINE.search(line)]
+        return [line for line in text.splitlines() if pattern.search(line)]
 
 
 class InProcessGraph:
@@ -805,6 +808,9 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
     for child in failed:
         if child is not None:
             print(f'--- last lines of {child.log_path} ---\n{child.tail()}', file=sys.stderr)
+    for child in children:
+        for line in child.errors(WARNING_LINE)[:MAX_ECHOED]:
+            print(f'{child.name}: {line}', file=sys.stderr)
     errors = {child.name: child.errors() for child in children if child not in failed}
     for name, lines in errors.items():
         for line in lines[:MAX_ECHOED]:

@@ -90,7 +90,7 @@ def test_a_damaged_int8_model_is_a_clear_error(cache):
     make('int8')
     xml, = (cache / 'int8').glob('*.xml')
     xml.write_text('<net')
-    with pytest.raises(WeightsError, match='delete it'):
+    with pytest.raises(WeightsError, match='weights fetch'):
         make('int8')
 
 
@@ -100,9 +100,12 @@ def test_an_int8_model_damaged_in_the_cache_is_found_by_its_hashes(cache, capsys
     make('int8')
     binary, = (cache / 'int8').glob('*.bin')
     binary.write_bytes(bytes(len(binary.read_bytes())))
-    with pytest.raises(WeightsError, match='is damaged .*delete it'):
-        make('int8')
-    assert make('auto').precision == 'float32'            # auto: the slower, correct run
+    for precision in ('int8', 'auto'):      # auto too: never a silent 4x slower run
+        with pytest.raises(int8.DamagedError, match=r'is damaged .*weights fetch'):
+            make(precision)
+    assert int8.discard_damaged(cache) == [binary.with_suffix('.xml')]
+    assert 'deleted the damaged int8 encoder' in capsys.readouterr().err
+    assert make('auto').precision == 'int8'                # built again from the weights
     hashes, = (cache / 'int8').glob('*.sha256')
     hashes.unlink()
     capsys.readouterr()

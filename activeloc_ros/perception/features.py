@@ -119,8 +119,8 @@ class Features:
                     prepare=lambda rgb: self.padded(self.tensor(self.resize(rgb))),
                     threads=torch.get_num_threads(), cache=cache.cache_dir())
             except WeightsError as exc:
-                if cfg.encoder_precision != 'auto':
-                    raise
+                if cfg.encoder_precision != 'auto' or isinstance(exc, int8.DamagedError):
+                    raise        # a damaged model is never a silent 4x slower run
                 # auto: the int8 encoder is a speed-up; without it, the correct slower run
                 print(f'warning: {exc}; the encoder runs in float32', file=sys.stderr,
                       flush=True)

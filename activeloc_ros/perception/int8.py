@@ -100,6 +100,13 @@ def cache_key(encoder: nn.Module, input_shape: tuple[int, ...]) -> str:
     return hashlib.sha256('|'.join(parts).encode()).hexdigest()[:16]
 
 
+REBUILD = 'rebuild it with `python -m activeloc_ros.perception.weights fetch`'
+
+
+class DamagedError(WeightsError):
+    """The cached int8 model is damaged: never a silent fall back to a 4x slower encoder."""
+
+
 def load(encoder: nn.Module, *, name: str, input_shape: tuple[int, ...],
          prepare: Callable[[np.ndarray], torch.Tensor], threads: int,
          cache: Path, stream: TextIO | None = None) -> Int8Encoder:
@@ -115,20 +122,45 @@ def load(encoder: nn.Module, *, name: str, input_shape: tuple[int, ...],
     path = Path(cache) / 'int8' / f'{name}-{cache_key(encoder, input_shape)}.xml'
     if not (path.is_file() and _hashes(path).is_file()):   # (none: an unfinished build)
         build(encoder, path, input_shape=input_shape, prepare=prepare, stream=stream)
-    damaged = [f for f, digest in _read_hashes(path).items()
-               if not (path.parent / f).is_file() or file_sha256(path.parent / f) != digest]
+    damaged = damaged_files(path)
     if damaged:     # OpenVINO reads a .bin of the right size, whatever its bytes
-        raise WeightsError(f'the int8 encoder {path} is damaged ({", ".join(damaged)} no '
-                           'longer match the hashes written when it was built); delete it '
-                           'and it is built again')
+        raise DamagedError(f'the int8 encoder {path} is damaged ({", ".join(damaged)} no '
+                           f'longer match the hashes written when it was built): {REBUILD}')
     core = openvino.Core()
     config = {'INFERENCE_NUM_THREADS': max(1, threads), 'PERFORMANCE_HINT': 'LATENCY'}
     try:
         compiled = core.compile_model(core.read_model(path), 'CPU', config)
     except RuntimeError as exc:
-        raise WeightsError(f'cannot load the int8 encoder {path} ({exc}); delete it and it '
-                           f'is built again') from exc
+        raise DamagedError(f'cannot load the int8 encoder {path} ({exc}): {REBUILD}') from exc
     return Int8Encoder(compiled, input_shape)
+
+
+def damaged_files(path: Path) -> list[str]:
+    """The files of the int8 model at ``path`` (.xml) that no longer match its hashes."""
+    return [f for f, digest in _read_hashes(path).items()
+            if not (path.parent / f).is_file() or file_sha256(path.parent / f) != digest]
+
+
+def discard_damaged(cache: Path, stream: TextIO | None = None) -> list[Path]:
+    """Delete every int8 model in ``cache`` that its hashes or OpenVINO say is damaged, so
+    its next use builds it again from the weights; the models deleted."""
+    out = stream or sys.stderr
+    gone = []
+    for xml in sorted((Path(cache) / 'int8').glob('*.xml')):
+        if not _hashes(xml).is_file():
+            continue                   # an unfinished build: its next use builds it anyway
+        try:
+            bad = damaged_files(xml)
+        except WeightsError:
+            bad = [_hashes(xml).name]
+        if not bad:
+            continue
+        for file in (xml, xml.with_suffix('.bin'), _hashes(xml)):
+            file.unlink(missing_ok=True)
+        print(f'deleted the damaged int8 encoder {xml} ({", ".join(bad)} did not match '
+              'its hashes); it is built again from the weights', file=out, flush=True)
+        gone.append(xml)
+    return gone
 
 
 def build(encoder: nn.Module, path: Path, *, input_shape: tuple[int, ...],
@@ -206,7 +238,7 @@ def _read_hashes(path: Path) -> dict[str, str]:
         raise WeightsError(f'cannot read {_hashes(path)}: {exc.strerror}') from None
     pairs = [line.split(None, 1) for line in lines if line.strip()]
     if not pairs or any(len(pair) != 2 for pair in pairs):
-        raise WeightsError(f'{_hashes(path)} is damaged; delete the int8 encoder '
-                           f'{path} and it is built again')
+        raise DamagedError(f'{_hashes(path)} is damaged (the int8 encoder {path}): '
+                           f'{REBUILD}')
     return {name.strip(): digest for digest, name in pairs}
 

@@ -319,8 +319,9 @@ def fetch(names: Sequence[str] | None = None, *, cache: str | Path | None = None
 
 def prepare_default_int8(cache: Path | None, fetched: Sequence[str]) -> None:
     """Build the default configuration's int8 encoder (`perception.int8`) into the cache
-    now, if its weights were fetched, so the graph's first start does not wait for it."""
-    from activeloc_ros.perception import int8
+    now, if its weights were fetched, so the graph's first start does not wait for it; a
+    damaged one is deleted and built again."""
+    from activeloc_ros.perception import cache as weight_cache, int8
     from activeloc_ros.perception.config import PerceptionConfig
     from activeloc_ros.perception.model import SurpriseModel
     if PerceptionConfig.encoder not in fetched:
@@ -328,6 +329,7 @@ def prepare_default_int8(cache: Path | None, fetched: Sequence[str]) -> None:
     if not int8.available():
         print(f'int8 encoder: skipped, {int8.NEEDS}', file=sys.stderr)
         return
+    int8.discard_damaged(weight_cache.cache_dir() if cache is None else cache)
     if cache is not None:
         os.environ[CACHE_ENV] = str(cache)
     model = SurpriseModel(PerceptionConfig(encoder_precision='int8'))
