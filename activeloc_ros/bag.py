@@ -92,6 +92,12 @@ def mcap_files(path: Path) -> list[Path]:
 READER_ERRORS = (McapError, OSError, ValueError, EOFError, KeyError, IndexError)
 
 
+def reindex_hint(path: Path) -> str:
+    """What to run on a bag whose writer was cut off."""
+    return f'if its recording was cut off, `python -m activeloc_ros.bag reindex {path}` ' \
+           'makes it readable again'
+
+
 def bag_facts(path: Path) -> BagFacts:
     """Read a bag's summary: topics, types, counts, time span. Raises SourceError if unusable."""
     files = mcap_files(path)
@@ -104,7 +110,8 @@ def bag_facts(path: Path) -> BagFacts:
             with open(file, 'rb') as stream:
                 summary = make_reader(stream).get_summary()
                 if summary is None or summary.statistics is None:
-                    raise SourceError(f'bag file has no summary (truncated or corrupt?): {file}')
+                    raise SourceError(f'bag file has no summary (truncated or corrupt?): {file}; '
+                                      f'{reindex_hint(path)}')
                 stats = summary.statistics
                 for channel_id, channel in summary.channels.items():
                     schema = summary.schemas.get(channel.schema_id)
@@ -117,8 +124,8 @@ def bag_facts(path: Path) -> BagFacts:
                     end = stats.message_end_time if end is None else max(
                         end, stats.message_end_time)
         except READER_ERRORS as exc:
-            raise SourceError(
-                f'cannot read bag file {file}: {type(exc).__name__}: {exc}') from exc
+            raise SourceError(f'cannot read bag file {file}: {type(exc).__name__}: {exc}; '
+                              f'{reindex_hint(path)}') from exc
     topics = [TopicFacts(name, msgtype, count)
               for (name, msgtype), count in sorted(counts.items())]
     return BagFacts(Path(path), files, sum(f.stat().st_size for f in files),
@@ -167,8 +174,8 @@ def read_messages(path: Path, topics: list[str], *, skipped: Counter | None = No
                         continue
                     yield channel.topic, schema.name, message.log_time, msg
         except READER_ERRORS as exc:
-            raise SourceError(
-                f'cannot read bag file {file}: {type(exc).__name__}: {exc}') from exc
+            raise SourceError(f'cannot read bag file {file}: {type(exc).__name__}: {exc}; '
+                              f'{reindex_hint(file)}') from exc
 
 
 class RecordingError(ActivelocError):
@@ -202,6 +209,8 @@ class BagWriter:
         self._connections: dict[str, object] = {}
         self.error: RecordingError | None = None
         self.closed = False
+        # after a write error: the messages the bag still holds, a topic (None: unknown)
+        self.held: dict[str, int] | None = None
 
     def add_topic(self, topic: str, msgtype: str) -> None:
         if topic not in self._connections:
@@ -255,6 +264,7 @@ class BagWriter:
                 f'{problem}; it could not be closed either ({again}): run '
                 f'`python -m activeloc_ros.bag reindex {self.path}` once there is room')
         else:
+            self.held = report.topics
             self.error = RecordingError(f'{problem}; the bag was closed at the last complete '
                                         f'chunk and holds {report.messages} messages')
 
@@ -498,6 +508,7 @@ class ReindexReport:
     messages: int
     lines: list[str]
     unrecovered: list[str]   # files cut short before their first complete chunk
+    topics: dict[str, int] = field(default_factory=dict)   # messages the bag holds a topic
 
 
 def reindex(path: Path) -> ReindexReport:
@@ -537,8 +548,13 @@ def reindex(path: Path) -> ReindexReport:
         tmp.write_text(yaml.safe_dump(info, sort_keys=False))
         tmp.replace(path / 'metadata.yaml')
         lines.append('metadata.yaml written')
+    topics: dict[str, int] = {}
+    for _, scan in files:
+        for channel, count in scan.counts.items():
+            topic = scan.channels[channel].topic
+            topics[topic] = topics.get(topic, 0) + count
     return ReindexReport(sum(sum(scan.counts.values()) for _, scan in files), lines,
-                         unrecovered)
+                         unrecovered, topics)
 
 
 def format_facts(facts: BagFacts) -> str:

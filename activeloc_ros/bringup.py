@@ -853,7 +853,8 @@ def summary(monitor: Monitor, elapsed: float, reason: str, codes: dict, recorder
         lines.append('  node exit codes: ' + ', '.join(f'{n} {c}' for n, c in codes.items()))
     if recorder is not None:
         counts = ', '.join(f'{t} {n}' for t, n in sorted(recorder.counts.items()))
-        lines.append(f'  recorded {recorder.path}: {counts}')
+        lines.append(f'  recorded {recorder.path}: '
+                     + (counts or 'how many messages it holds is not known (below)'))
         for topic, why in sorted(recorder.unrecorded.items()):
             lines.append(f'  NOT RECORDED {topic}: {why}')
         if recorder.error is not None:

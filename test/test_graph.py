@@ -274,6 +274,7 @@ def write_text_bag(path):
     ('missing', 'bag not found'),
     ('empty', 'empty'),
     ('corrupt', 'cannot read bag file'),
+    ('corrupt', 'python -m activeloc_ros.bag reindex'),     # and what mends a cut-off bag
     ('no_image', 'no image topic'),
     ('bad_params', 'not in ROS 2 format'),
 ])

@@ -177,3 +177,33 @@ def test_a_type_the_bag_cannot_describe_is_left_out_and_named_not_fatal(tmp_path
         '/rec_test_goals']
     assert recorder.error is None
     assert bag_facts(tmp_path / 'bag').message_count >= 2
+
+
+def test_on_a_full_disk_the_recorder_counts_what_the_bag_holds(tmp_path, context):
+    """The summary listed 29 messages recorded while the bag held 15: the chunk being
+    written when the disk filled is lost, and the counts must say so."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from std_msgs.msg import String
+    from activeloc_ros.nodes.recorder import RecorderNode
+    from conftest import spin_until
+    recorder = RecorderNode(tmp_path / 'bag', context=context,
+                            wrap_stream=lambda s: FillsUp(s, 3_500_000))
+    talker = Node('talker', context=context)
+    words = talker.create_publisher(String, 'rec_test_full', 100)
+    executor = SingleThreadedExecutor(context=context)
+    for node in (recorder, talker):
+        executor.add_node(node)
+    try:
+        def full():
+            words.publish(String(data='x' * PAYLOAD))
+            return recorder.error is not None
+        assert spin_until(executor, full, 30)
+    finally:
+        executor.shutdown()
+        recorder.close()
+        for node in (recorder, talker):
+            node.destroy_node()
+    held = message_count(tmp_path / 'bag')
+    assert held > 0
+    assert recorder.counts == {'/rec_test_full': held}

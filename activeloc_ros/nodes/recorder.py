@@ -94,8 +94,7 @@ class RecorderNode(Node):
             try:
                 self.writer.write_cdr(topic, self.get_clock().now().nanoseconds, data)
             except RecordingError as exc:
-                self.error = exc
-                self.get_logger().error(str(exc))
+                self._failed(exc)
                 return
             self.counts[topic] += 1
 
@@ -107,5 +106,13 @@ class RecorderNode(Node):
             try:
                 self.writer.close()
             except RecordingError as exc:
-                self.error = exc
-                self.get_logger().error(str(exc))
+                self._failed(exc)
+
+    def _failed(self, exc: RecordingError) -> None:
+        """The recording ended on an error: count what the bag holds, not what was sent to
+        it (a full disk loses the chunk being written)."""
+        self.error = exc
+        self.get_logger().error(str(exc))
+        held = self.writer.held
+        self.counts = {t: (held or {}).get(t, 0) for t in self.counts} if held is not None \
+            else {}
