@@ -436,6 +436,11 @@ class Monitor:
         else:
             self.downstream.append(sub(JointState, 'joint_commands', self.on_command, 10))
             sub(JointState, 'joint_states', self.on_state, 10)
+        from activeloc_ros.nodes.masters import PublisherWatch
+        # a second controller beside the graph, said on this console (the nodes say it too)
+        self.masters = PublisherWatch(
+            self.node, 'cmd_vel' if base else 'joint_commands', diagnostics=False,
+            say=lambda text: print(f'bringup: warning: {text}', file=sys.stderr, flush=True))
 
     def hears_downstream(self, recorder=None) -> bool:
         """Are the monitor's (and the recorder's) subscriptions to what perception and the

@@ -32,6 +32,7 @@ from activeloc_ros.control import (
 from activeloc_ros.control.braccio import speed_deg_s, STEP_DELAY_MS_RANGE
 from activeloc_ros.control.serial_link import BraccioLink
 from activeloc_ros.nodes.clock import Rewinds
+from activeloc_ros.nodes.masters import PublisherWatch
 from activeloc_ros.nodes.messages import joint_state
 from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
 from activeloc_ros.nodes.settings import MAPPING_PARAMS
@@ -142,6 +143,7 @@ class ArmNode(Node):
             self.create_timer(values['poll_period'], self.on_poll)
 
         self.publisher = self.create_publisher(JointState, 'joint_states', 10)
+        self.masters = PublisherWatch(self, 'joint_commands')   # the arm obeys one master
         self.create_subscription(JointState, 'joint_commands', self.on_command,
                                  QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
         self.state_timer = self.create_timer(1.0 / values['state_rate'], self.on_state_timer)

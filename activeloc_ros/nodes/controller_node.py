@@ -42,6 +42,7 @@ from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.pd import DERIVATIVE_MODES
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.nodes.clock import Rewinds
+from activeloc_ros.nodes.masters import PublisherWatch
 from activeloc_ros.nodes.messages import (
     arm_joints_deg, joint_state, region_box, scan_from, stamp_ns, stamp_s)
 from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
@@ -217,6 +218,8 @@ class ControllerNode(Node):
         sensor = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
         commands = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
         self.ignored_pub = self.create_publisher(PointStamped, 'action_location/ignored', 10)
+        # one master: a second controller on the same actuator is said, not fought
+        self.masters = PublisherWatch(self, 'cmd_vel' if self.base else 'joint_commands')
         self.create_subscription(PointStamped, 'action_location', self.on_location,
                                  QoSProfile(depth=1, reliability=inputs))
         self.create_subscription(CameraInfo, 'camera/camera_info', self.on_camera_info, sensor)

@@ -30,6 +30,7 @@ from activeloc_ros.data import FrameTruth
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.nodes.lockstep import Lockstep, moot_in_lockstep, time_ns
+from activeloc_ros.nodes.masters import PublisherWatch
 from activeloc_ros.nodes.messages import (
     arm_joints_deg, camera_info, joint_state, stamp_ns, time_from_ns)
 from activeloc_ros.nodes.ros_params import declare, frame_due, node_help, Param, run
@@ -101,6 +102,7 @@ class SimNode(Node):
         self.info_pub = self.create_publisher(CameraInfo, 'camera/camera_info', 10)
         self.pose_pub = self.create_publisher(JointState, 'camera/pose', reliable)
         self.state_pub = self.create_publisher(JointState, 'joint_states', reliable)
+        self.masters = PublisherWatch(self, 'joint_commands')   # the arm obeys one master
         self.command_sub = self.create_subscription(
             JointState, 'joint_commands', self.on_command,
             QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))

@@ -36,6 +36,7 @@ from activeloc_ros.control.base import Twist as BaseTwist
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.nodes.lockstep import ANSWER, Lockstep, moot_in_lockstep
+from activeloc_ros.nodes.masters import PublisherWatch
 from activeloc_ros.nodes.messages import camera_info, scan_message, stamp_ns, time_from_ns
 from activeloc_ros.nodes.ros_params import declare, frame_due, node_help, Param, run
 from activeloc_ros.tracking.scenes import SCENES
@@ -92,6 +93,7 @@ class TrackingNode(Node):
         self.scan_pub = self.create_publisher(LaserScan, 'scan', 10)
         self.target_pub = self.create_publisher(PointStamped, 'target/position', reliable)
         self.command_sub = self.create_subscription(Twist, 'cmd_vel', self.on_command, reliable)
+        self.masters = PublisherWatch(self, 'cmd_vel')    # the base obeys one controller
         self.lockstep = None
         if p['lockstep']:
             self.lockstep = Lockstep(timeout=p['lockstep_timeout'],
