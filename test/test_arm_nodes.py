@@ -326,8 +326,9 @@ def test_the_serial_link_reports_its_health_on_diagnostics(arm_graph, tmp_path):
         executor, arm, probe = arm_graph('backend:=serial', f'port:={emulator.path}',
                                          'silence_timeout:=0.3', 'give_up_timeout:=0.0')
         reports = []
-        probe.node.create_subscription(DiagnosticArray, '/diagnostics',
-                                       lambda m: reports.extend(m.status), 10)
+        probe.node.create_subscription(   # the link's status (not the publishers' watch)
+            DiagnosticArray, '/diagnostics', lambda m: reports.extend(
+                s for s in m.status if s.name == 'arm: serial link'), 10)
 
         def latest(level):
             return spin_until(executor, lambda: reports and reports[-1].level == level, 10.0)
