@@ -528,10 +528,11 @@ class Child:
     def __init__(self, node: str, args, log_dir: Path, env):
         self.name = node
         self.log_path = log_dir / f'{node}.log'
-        module = f'activeloc_ros.nodes.{node}_node'
         self.log = open(self.log_path, 'w')
+        # (nodes.start: a stop while the node's module loads ends it cleanly)
         self.process = subprocess.Popen(
-            [sys.executable, '-u', '-m', module] + node_arguments(node, args),
+            [sys.executable, '-u', '-m', 'activeloc_ros.nodes.start', node]
+            + node_arguments(node, args),
             stdout=self.log, stderr=subprocess.STDOUT, env=env, start_new_session=True,
             preexec_fn=_die_with_parent)
         self.stop_deadline = stop_deadline(node, args)
@@ -827,13 +828,15 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
         failed.append(None)
     print(summary(monitor, elapsed, reason, codes, recorder))
     perception = [c for c in children if c.name == 'perception' and c not in failed]
-    if not monitor.maps and perception:      # why the run fails, when no node failed
+    stopped = stop.reason is not None and reason == stop.reason    # by the user, on purpose
+    if not monitor.maps and perception and not stopped:   # why the run fails, when no node
+        # failed
         print(f'bringup: no surprise map came; the last lines of {perception[0].log_path} '
               f'(a first use of an int8 encoder is built first, about a minute):\n'
               f'{perception[0].tail(3)}', file=sys.stderr)
     monitor.node.destroy_node()
     rclpy.try_shutdown(context=context)
-    return 1 if failed or any(errors.values()) or not monitor.maps else 0
+    return 1 if failed or any(errors.values()) or not (monitor.maps or stopped) else 0
 
 
 def summary(monitor: Monitor, elapsed: float, reason: str, codes: dict, recorder) -> str:
@@ -867,20 +870,34 @@ def summary(monitor: Monitor, elapsed: float, reason: str, codes: dict, recorder
     return '\n'.join(lines)
 
 
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
 def main(argv=None) -> int:
-    args = parse_args(sys.argv[1:] if argv is None else argv)
+    started = time.monotonic()
+    # until the graph's own stop handling is in place (`StopRequest`), a SIGTERM stops
+    # bringup's checks as a Ctrl-C does: at once, no node started, no traceback
+    previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
-        import rclpy  # noqa: F401
-    except ModuleNotFoundError:
-        print("bringup: error: rclpy is not installed: source a ROS 2 Jazzy (source "
-              "/opt/ros/jazzy/setup.bash) or install the PyPI wheels with pip install "
-              "'.[ros]'", file=sys.stderr)
-        return 2
-    try:
+        args = parse_args(sys.argv[1:] if argv is None else argv)
+        try:
+            import rclpy  # noqa: F401
+        except ModuleNotFoundError:
+            print("bringup: error: rclpy is not installed: source a ROS 2 Jazzy (source "
+                  "/opt/ros/jazzy/setup.bash) or install the PyPI wheels with pip install "
+                  "'.[ros]'", file=sys.stderr)
+            return 2
         return run(args)
     except ActivelocError as exc:
         print(f'bringup: error: {exc}', file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f'\nsummary: stopped during start-up after {time.monotonic() - started:.1f} s '
+              '(Ctrl-C or SIGTERM), before any node was started', flush=True)
+        return 0
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == '__main__':

@@ -414,6 +414,32 @@ def test_bringup_stopped_by_a_signal_leaves_no_node_and_a_readable_bag(tmp_path,
     assert counts['/robot1/camera/image_raw'] > 0 and counts['/robot1/surprise_map'] > 0
 
 
+@pytest.mark.parametrize('how, after', [('SIGINT', 0.8), ('SIGTERM', 2.0), ('SIGINT', 3.5),
+                                        ('SIGTERM', 5.0)])
+def test_a_stop_at_any_moment_of_the_start_is_clean(tmp_path, graph_env, how, after):
+    """A Ctrl-C or SIGTERM while bringup checks, while the nodes load torch, or while they
+    are being made: every node stops cleanly, no traceback anywhere, and the summary says
+    it was stopped (the moments are seconds into a start that takes about ten here)."""
+    logs = tmp_path / 'logs'
+    bringup = subprocess.Popen(
+        [sys.executable, '-m', 'activeloc_ros.bringup', '--duration', '30', '--log-dir',
+         str(logs)], env=graph_env, cwd=REPO, stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT, text=True)
+    try:
+        time.sleep(after)
+        bringup.send_signal(getattr(signal, how))
+        out, _ = bringup.communicate(timeout=60)
+    finally:
+        bringup.kill()
+    node_logs = ''.join(f.read_text() for f in logs.glob('*.log')) if logs.exists() else ''
+    assert bringup.returncode == 0, out + node_logs
+    assert 'Traceback' not in out + node_logs
+    assert re.search(r'summary: stopped (during start-up )?after', out), out
+    assert 'exited with code' not in out
+    codes = re.search(r'node exit codes: (.*)', out)
+    assert codes is None or set(re.findall(r' (-?\d+)', codes.group(1))) == {'0'}, out
+
+
 def write_mono16_bag(path, frames=3):
     from activeloc_ros.bag import BagWriter
     writer = BagWriter(path)

@@ -1,0 +1,47 @@
+"""How bringup starts a node's process: ``python -m activeloc_ros.nodes.start NODE ARGS``.
+
+A node's module loads torch, OpenCV or OpenVINO before its own stop handling
+(`ros_params.run`) is in place, which takes seconds; a Ctrl-C or SIGTERM then came out as a
+KeyboardInterrupt traceback and a failed exit. Here a stop while the module loads ends the
+process at once and cleanly (exit 0, a line saying so); then the node's ``main`` runs with
+the signal handling it always had.
+"""
+import importlib
+import signal
+import sys
+
+STOPPED_LOADING = 'stopped (Ctrl-C or SIGTERM) while the node was loading'
+
+
+class _Stopped(BaseException):
+    """A stop while the node's module loads (a BaseException: nothing may swallow it)."""
+
+
+def _stop(signum, frame):
+    raise _Stopped(signum)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] in ('-h', '--help'):
+        print(__doc__.strip())
+        return 0 if argv else 2
+    previous = {sig: signal.signal(sig, _stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        module = importlib.import_module(f'activeloc_ros.nodes.{argv[0]}_node')
+    except _Stopped:
+        print(STOPPED_LOADING, file=sys.stderr, flush=True)
+        return 0
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    sys.argv = [module.__file__, *argv[1:]]
+    try:
+        return module.main()
+    except KeyboardInterrupt:     # a Ctrl-C before the node's own handling was in place
+        print(STOPPED_LOADING, file=sys.stderr, flush=True)
+        return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
