@@ -12,6 +12,7 @@ COMMANDS = {
                  'simulated active tracking, mobile base (paper Tables 1 and 3)'),
     'compare': ('activeloc_ros.bench.compare',
                 'selection protocol: is a configuration better than another, or luck'),
+    'scenes': ('activeloc_ros.bench.scenes', 'generate synthetic static-camera sequences'),
     'graph-check': ('activeloc_ros.bench.graph_check',
                     'does the ROS graph in lockstep move the camera as the benchmark does'),
 }

@@ -1,5 +1,6 @@
 """People of the tracking world: pybullet's DeepMimic humanoid playing motion-capture clips,
-and the two target behaviours of gym-unrealcv's tracking worlds.
+the two target behaviours of gym-unrealcv's tracking worlds, and `follow`, a walk along
+given waypoints (the synthetic clips' people).
 
 The humanoid (``humanoid/humanoid.urdf``, scaled to 1.7 m) and its clips
 (``data/motions/humanoid3d_*.txt``: 30 frames/s, root position, root and joint rotations,
@@ -8,6 +9,7 @@ kinematically: no physics, the joints are set to the clip's pose each step. The 
 forward travel is taken out; a behaviour moves the person over the ground and the clip's
 phase advances with the distance walked, so the feet keep pace with the ground.
 """
+import dataclasses
 from dataclasses import dataclass
 import json
 import math
@@ -24,6 +26,7 @@ CLIP_JOINTS = ((1, 4), (2, 4), (3, 4), (4, 1), (5, 4), (6, 4), (7, 1),
                (9, 4), (10, 1), (11, 4), (12, 4), (13, 1))
 TRAVEL_CLIPS = ('walk', 'run')   # clips that travel: their phase follows the distance walked
 CLIPS = ('walk', 'run', 'dance_a', 'dance_b', 'punch', 'kick', 'spin', 'jump', 'spinkick')
+TURN_RATE = math.radians(300)   # rad/s: how fast `follow` turns a walker onto its next leg
 
 
 def _xyzw(wxyz) -> list[float]:
@@ -62,6 +65,11 @@ class Clip:
         return cls(name, float(frames[0, 0]), frames[:, 2].copy(), frames[:, 3].copy(),
                    np.array([_xyzw(f[4:8]) for f in frames]), joints, abs(travel))
 
+    def in_place(self) -> 'Clip':
+        """This clip with its root held over the spot it is played on: without the sideways
+        drift (up to 1.5 m in punch) that a looping clip jumps back from at every loop."""
+        return dataclasses.replace(self, side=np.zeros_like(self.side))
+
     def __len__(self) -> int:
         return len(self.height)
 
@@ -70,17 +78,26 @@ class Clip:
         return int(phase % 1.0 * (len(self) - 1))
 
 
+def clothes(rng: np.random.Generator) -> dict[str, tuple]:
+    """Random RGBA colours for a person's body parts (`Person`'s ``colours``)."""
+    skin = rng.uniform(0.45, 0.95) * np.array([1.0, 0.8, 0.65])
+    return {'torso': (*rng.uniform(0.05, 0.95, 3), 1.0),
+            'limbs': (*rng.uniform(0.05, 0.7, 3), 1.0), 'head': (*skin, 1.0)}
+
+
 class Person:
     """A humanoid in a pybullet world that plays a clip where a behaviour puts it.
 
     :param client: a ``pybullet_utils.bullet_client.BulletClient``.
     :param colours: RGBA per body part (torso, limbs, head).
+    :param scale: its size against the 1.7 m humanoid (0.9: 1.53 m tall).
     """
 
-    def __init__(self, client, clip: Clip, *, data_dir: str, colours: dict[str, tuple]):
-        self.client, self.clip = client, clip
+    def __init__(self, client, clip: Clip, *, data_dir: str, colours: dict[str, tuple],
+                 scale: float = 1.0):
+        self.client, self.clip, self.scale = client, clip, scale
         self.body = client.loadURDF(str(Path(data_dir) / 'humanoid' / 'humanoid.urdf'),
-                                    [0, 0, 0], globalScaling=HUMANOID_SCALE,
+                                    [0, 0, 0], globalScaling=HUMANOID_SCALE * scale,
                                     useFixedBase=True, flags=client.URDF_MAINTAIN_LINK_ORDER)
         for link in range(-1, client.getNumJoints(self.body)):
             name = 'torso' if link in (-1, 1) else 'head' if link == 2 else 'limbs'
@@ -93,17 +110,41 @@ class Person:
         (travel clips) or played ``dt`` s (the others) since the last pose."""
         clip, c = self.clip, self.client
         if clip.stride_m > 0:
-            self.phase += step_m / clip.stride_m
+            self.phase += step_m / (clip.stride_m * self.scale)
         else:
             self.phase += dt / (clip.frame_s * (len(clip) - 1))
         i = clip.frame(self.phase)
         turn = c.getQuaternionFromEuler([0, 0, heading])
         _, orn = c.multiplyTransforms([0, 0, 0], turn, [0, 0, 0], self._y_up)
         _, orn = c.multiplyTransforms([0, 0, 0], orn, [0, 0, 0], clip.root[i].tolist())
-        side = clip.side[i]   # the clip is in metres for the scaled humanoid
-        pos = [x + side * math.sin(heading), y - side * math.cos(heading), clip.height[i]]
+        side = clip.side[i] * self.scale   # the clip is in metres for the 1.7 m humanoid
+        pos = [x + side * math.sin(heading), y - side * math.cos(heading),
+               clip.height[i] * self.scale]
         c.resetBasePositionAndOrientation(self.body, pos, orn)
         c.resetJointStatesMultiDof(self.body, [j for j, _ in CLIP_JOINTS], clip.joints[i])
+
+
+def follow(waypoints: np.ndarray, speed: float, frames: int, fps: float, *,
+           heading: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions (F, 2), headings (F,) and distance walked since the frame before (F,) of a
+    person going along ``waypoints`` at ``speed`` from frame 0 (standing at the first one,
+    facing ``heading``, when there is a single waypoint or no speed)."""
+    points = np.asarray(waypoints, float).reshape(-1, 2)
+    if len(points) == 1 or speed <= 0:
+        return (np.repeat(points[:1], frames, 0), np.full(frames, heading), np.zeros(frames))
+    legs = np.diff(points, axis=0)
+    ends = np.concatenate([[0.0], np.cumsum(np.hypot(legs[:, 0], legs[:, 1]))])
+    s = np.minimum(speed * np.arange(frames) / fps, ends[-1])
+    xy = np.column_stack([np.interp(s, ends, points[:, 0]), np.interp(s, ends, points[:, 1])])
+    leg = np.clip(np.searchsorted(ends, s, side='right') - 1, 0, len(legs) - 1)
+    want = np.arctan2(legs[leg, 1], legs[leg, 0])
+    headings = np.empty(frames)
+    headings[0] = want[0]
+    for k in range(1, frames):     # turn onto a new leg at a person's pace, not at once
+        turn = math.remainder(want[k] - headings[k - 1], math.tau)
+        limit = TURN_RATE / fps
+        headings[k] = headings[k - 1] + max(-limit, min(limit, turn))
+    return xy, headings, np.diff(s, prepend=0.0)
 
 
 @dataclass

@@ -23,6 +23,8 @@ import numpy as np
 from activeloc_ros.errors import ConfigError
 
 SCENES = ('room', 'urban', 'snow', 'parking')
+# the procedural textures `Builder.texture` makes
+TEXTURES = ('floor', 'wall', 'facade', 'glass', 'road', 'snow', 'concrete')
 # the Table 1 world each scene stands in for
 PAPER_NAMES = {'room': 'DuelingRoom', 'urban': 'UrbanCity', 'snow': 'SnowVillage',
                'parking': 'ParkingLot'}

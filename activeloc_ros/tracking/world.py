@@ -34,7 +34,7 @@ from activeloc_ros.control.base import BaseConfig, BaseController, Scan, Twist
 from activeloc_ros.control.geometry import Intrinsics
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.tracking import reward as rewards
-from activeloc_ros.tracking.people import Behaviour, Clip, Person, Walker
+from activeloc_ros.tracking.people import Behaviour, Clip, clothes, Person, Walker
 from activeloc_ros.tracking.scenes import build
 from activeloc_ros.world import View
 
@@ -107,7 +107,7 @@ class TrackingConfig:
 
 
 @contextlib.contextmanager
-def _quiet():
+def quiet():
     """Hold back what pybullet's C code prints while it starts and loads models (its build
     time, argv, URDF warnings about the humanoid's joint axes)."""
     sys.stdout.flush()
@@ -125,10 +125,25 @@ def _quiet():
             os.close(saved[1])
 
 
-def _colours(rng: np.random.Generator) -> dict[str, tuple]:
-    skin = rng.uniform(0.45, 0.95) * np.array([1.0, 0.8, 0.65])
-    return {'torso': (*rng.uniform(0.05, 0.95, 3), 1.0),
-            'limbs': (*rng.uniform(0.05, 0.7, 3), 1.0), 'head': (*skin, 1.0)}
+def camera_image(client, width: int, height: int, view, projection,
+                 **light) -> tuple[np.ndarray, np.ndarray]:
+    """TinyRenderer's RGB image (H, W, 3) and segmentation mask (body ids, -1 for none) of
+    ``client`` through ``view`` and ``projection``; ``light``: getCameraImage's lighting
+    options (lightDirection, lightColor, shadow...)."""
+    _, _, rgba, _, seg = client.getCameraImage(width, height, view, projection,
+                                               renderer=client.ER_TINY_RENDERER, **light)
+    rgb = np.asarray(rgba, np.uint8).reshape(height, width, 4)[..., :3]
+    return np.ascontiguousarray(rgb), np.asarray(seg).reshape(height, width)
+
+
+def mask_box(seg: np.ndarray, body: int, min_px: int) -> tuple[int, int, int, int] | None:
+    """The box (x, y, w, h) round the pixels of ``body`` in a segmentation mask; None when
+    fewer than ``min_px`` of them show."""
+    ys, xs = np.nonzero(seg == body)
+    if len(xs) < max(min_px, 1):
+        return None
+    return (int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1),
+            int(ys.max() - ys.min() + 1))
 
 
 class TrackingWorld:
@@ -140,7 +155,7 @@ class TrackingWorld:
     scene = None     # no screen: `closed_loop.run_episode` hands on_frame no scene frame
 
     def __init__(self, scene: str, seed: int, config: TrackingConfig = TrackingConfig()):
-        with _quiet():
+        with quiet():
             import pybullet
             import pybullet_data
             from pybullet_utils.bullet_client import BulletClient
@@ -180,7 +195,7 @@ class TrackingWorld:
         d = cfg.start_distance
         self.target = Walker(x + d * math.cos(heading), y + d * math.sin(heading), heading,
                              cfg.target_speed[0])
-        self.people = [(Person(c, clip('walk'), data_dir=data_dir, colours=_colours(rng)),
+        self.people = [(Person(c, clip('walk'), data_dir=data_dir, colours=clothes(rng)),
                         self.target,
                         Behaviour(cfg.target, self.plan, rng, speed=cfg.target_speed))]
         for _ in range(built.distractors):
@@ -191,7 +206,7 @@ class TrackingWorld:
                         px - self.target.x, py - self.target.y) > 1.5:
                     break
             kind = str(rng.choice(TARGETS)) if name == 'walk' else 'stay'
-            self.people.append((Person(c, clip(name), data_dir=data_dir, colours=_colours(rng)),
+            self.people.append((Person(c, clip(name), data_dir=data_dir, colours=clothes(rng)),
                                 Walker(px, py, rng.uniform(-math.pi, math.pi),
                                        cfg.target_speed[0]),
                                 Behaviour(kind, self.plan, rng, speed=cfg.target_speed)))
@@ -298,20 +313,14 @@ class TrackingWorld:
         look = [b.x + math.cos(b.heading) * math.cos(tilt),
                 b.y + math.sin(b.heading) * math.cos(tilt), cfg.camera_height + math.sin(tilt)]
         view = c.computeViewMatrix(eye, look, [0, 0, 1])
-        _, _, rgba, _, seg = c.getCameraImage(cfg.width, cfg.height, view, self._projection,
-                                              renderer=c.ER_TINY_RENDERER)
-        rgb = np.asarray(rgba, np.uint8).reshape(cfg.height, cfg.width, 4)[..., :3]
-        return np.ascontiguousarray(rgb), np.asarray(seg).reshape(cfg.height, cfg.width)
+        return camera_image(c, cfg.width, cfg.height, view, self._projection)
 
     def observe(self) -> View:
         """The camera's picture now, with the target's true box (None when out of view)."""
         rgb, seg = self.render()
-        ys, xs = np.nonzero(seg == self.target_body)
-        box = None
+        box = mask_box(seg, self.target_body, self.config.min_visible_px)
         truth = np.zeros((0, 2))
-        if len(xs) >= self.config.min_visible_px:
-            box = (int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1),
-                   int(ys.max() - ys.min() + 1))
+        if box is not None:
             truth = np.array([[box[0] + (box[2] - 1) / 2, box[1] + (box[3] - 1) / 2]])
         intr = self.intrinsics
         self.view = View(rgb, self.index, self.t, self.base.heading, 0.0, truth,
