@@ -94,6 +94,22 @@ def fixed_moves(target_deg: Sequence[float], current_deg: Sequence[float], *,
             if name not in aiming and abs(q - h) > tolerance and abs(q - now) > tolerance}
 
 
+def refusal_text(moved: Mapping[str, float], aiming: Sequence[str], count: int) -> str:
+    """The warning for a command refused by `fixed_moves`."""
+    return ('refused a joint command that moves '
+            + ', '.join(f'{n} to {q:.1f} deg' for n, q in moved.items())
+            + f': only {", ".join(aiming)} aim the camera, the other joints stay at home '
+            f'(params/robot.yaml) ({count} refused so far)')
+
+
+def clamp_text(target: Sequence[float], safe: Sequence[float], count: int) -> str:
+    """The warning for a command clamped into the joint limits."""
+    return ('clamped a joint command outside the limits: '
+            + ', '.join(f'{n} {q:.1f} -> {c:.1f} deg'
+                        for n, q, c in zip(JOINT_NAMES, target, safe) if q != c)
+            + f' ({count} so far)')
+
+
 @dataclass(frozen=True)
 class ArmMapping:
     """Camera pan/tilt <-> joint angles around a home pose.

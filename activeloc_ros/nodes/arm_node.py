@@ -29,7 +29,8 @@ from sensor_msgs.msg import JointState
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
 from activeloc_ros.control import (
     clamp_to_limits, fixed_moves, HOME_DEG, JOINT_NAMES, pose_problem, SimArm)
-from activeloc_ros.control.braccio import speed_deg_s, STEP_DELAY_MS_RANGE
+from activeloc_ros.control.braccio import (
+    clamp_text, refusal_text, speed_deg_s, STEP_DELAY_MS_RANGE)
 from activeloc_ros.control.serial_link import BraccioLink
 from activeloc_ros.nodes.clock import Rewinds
 from activeloc_ros.nodes.masters import PublisherWatch
@@ -232,20 +233,14 @@ class ArmNode(Node):
         moved = fixed_moves(target, self._target(), home_deg=self.home, aiming=self.aiming)
         if moved:
             self.refused += 1
-            self.get_logger().warning(
-                'refused a joint command that moves ' + ', '.join(
-                    f'{n} to {q:.1f} deg' for n, q in moved.items())
-                + f': only {", ".join(self.aiming)} aim the camera, the other joints stay '
-                f'at home (params/robot.yaml) ({self.refused} refused so far)',
-                throttle_duration_sec=5.0)
+            self.get_logger().warning(refusal_text(moved, self.aiming, self.refused),
+                                      throttle_duration_sec=5.0)
             return
         safe = clamp_to_limits(target)
         if safe != target:
             self.clamped += 1
-            self.get_logger().warning(
-                'clamped a joint command outside the limits: ' + ', '.join(
-                    f'{n} {q:.1f} -> {c:.1f} deg' for n, q, c in zip(JOINT_NAMES, target, safe)
-                    if q != c) + f' ({self.clamped} so far)', throttle_duration_sec=5.0)
+            self.get_logger().warning(clamp_text(target, safe, self.clamped),
+                                      throttle_duration_sec=5.0)
         self._send(safe)
 
     def on_poll(self) -> None:

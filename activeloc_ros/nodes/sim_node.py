@@ -25,7 +25,8 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import CameraInfo, Image, JointState
 
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
-from activeloc_ros.control.braccio import clamp_to_limits, JOINT_NAMES, STEP_DELAY_MS_RANGE
+from activeloc_ros.control.braccio import (
+    clamp_text, clamp_to_limits, refusal_text, STEP_DELAY_MS_RANGE)
 from activeloc_ros.data import FrameTruth
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.images import rgb_to_image_fields
@@ -176,19 +177,14 @@ class SimNode(Node):
         if moved:
             self.refused += 1
             self.get_logger().warning(
-                'refused a joint command that moves ' + ', '.join(
-                    f'{n} to {q:.1f} deg' for n, q in moved.items())
-                + f': only {", ".join(mapping.aiming_joints)} aim the camera, the other '
-                f'joints stay at home (params/robot.yaml) ({self.refused} refused so far)',
+                refusal_text(moved, mapping.aiming_joints, self.refused),
                 throttle_duration_sec=5.0)
             return False
         safe = clamp_to_limits(joints)
         if safe != tuple(joints):
             self.clamped += 1
-            self.get_logger().warning(
-                'clamped a joint command outside the limits: ' + ', '.join(
-                    f'{n} {q:.1f} -> {c:.1f} deg' for n, q, c in zip(JOINT_NAMES, joints, safe)
-                    if q != c) + f' ({self.clamped} so far)', throttle_duration_sec=5.0)
+            self.get_logger().warning(clamp_text(joints, safe, self.clamped),
+                                      throttle_duration_sec=5.0)
         return True
 
     def on_location(self, msg: PointStamped) -> None:

@@ -21,19 +21,27 @@ def grey(image: np.ndarray) -> np.ndarray:
     return cv2.GaussianBlur(g.astype(np.float32), BLUR, 0)
 
 
+def into_view(previous: np.ndarray, warp: np.ndarray | None
+              ) -> tuple[np.ndarray, np.ndarray | None]:
+    """(`previous` moved by `warp` into the new view, the mask (uint8, 1) of the pixels the
+    previous view saw); the image as it is and no mask when the camera did not move."""
+    if warp is None:
+        return previous, None
+    h, w = previous.shape[:2]
+    moved = cv2.warpPerspective(previous, warp, (w, h), flags=cv2.INTER_LINEAR,
+                                borderMode=cv2.BORDER_REPLICATE)
+    seen = cv2.warpPerspective(np.ones((h, w), np.uint8), warp, (w, h),
+                               flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                               borderValue=0)
+    return moved, seen
+
+
 def residual(previous: np.ndarray, current: np.ndarray, warp: np.ndarray | None, *,
              tolerance_px: int = 1) -> np.ndarray:
     """(H, W) change of `current` against `previous` (grey, float32) moved by `warp` (3x3,
     previous -> current pixels; None: the camera did not move). 0 where the previous view
     saw nothing."""
-    h, w = current.shape
-    seen = None
-    if warp is not None:
-        previous = cv2.warpPerspective(previous, warp, (w, h), flags=cv2.INTER_LINEAR,
-                                       borderMode=cv2.BORDER_REPLICATE)
-        seen = cv2.warpPerspective(np.ones((h, w), np.uint8), warp, (w, h),
-                                   flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
-                                   borderValue=0)
+    previous, seen = into_view(previous, warp)
     if tolerance_px > 0:
         kernel = np.ones((2 * tolerance_px + 1,) * 2, np.uint8)
         high, low = cv2.dilate(previous, kernel), cv2.erode(previous, kernel)
@@ -128,14 +136,7 @@ class FlowMagnitude:
         self.moved = warp is not None
         if previous is None:
             return None
-        shape = (self.size, self.size)
-        seen = None
-        if warp is not None:
-            previous = cv2.warpPerspective(previous, warp, shape, flags=cv2.INTER_LINEAR,
-                                           borderMode=cv2.BORDER_REPLICATE)
-            seen = cv2.warpPerspective(np.ones(shape, np.uint8), warp, shape,
-                                       flags=cv2.INTER_NEAREST,
-                                       borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        previous, seen = into_view(previous, warp)
         flow = self.flow.calc(previous, current, None)
         length = np.hypot(flow[..., 0], flow[..., 1]).astype(np.float32)
         if seen is not None:      # what the old view did not see has no flow to measure
