@@ -56,16 +56,16 @@ def _check(scores: Scores, name: str) -> None:
             raise ConfigError(f'{name}: sequence {seq!r} has a non-finite score (seed {bad[0]})')
 
 
-def _draw(rng: np.random.Generator, base: dict[int, float],
-          cand: dict[int, float]) -> float:
-    """One bootstrap draw of a sequence's difference: its seeds drawn with replacement, the
-    two runs of a seed together where both sides ran the same seeds."""
+def _draws(rng: np.random.Generator, base: dict[int, float], cand: dict[int, float],
+           count: int) -> np.ndarray:
+    """``count`` bootstrap draws of a sequence's difference: its seeds drawn with
+    replacement, the two runs of a seed together where both sides ran the same seeds."""
     if sorted(base) == sorted(cand):
-        seeds = list(base)
-        picks = [seeds[i] for i in rng.integers(0, len(seeds), size=len(seeds))]
-        return float(np.mean([cand[s] - base[s] for s in picks]))
-    b, c = list(base.values()), list(cand.values())
-    return float(np.mean(rng.choice(c, size=len(c))) - np.mean(rng.choice(b, size=len(b))))
+        d = np.array([cand[s] - base[s] for s in sorted(base)])
+        return d[rng.integers(0, len(d), size=(count, len(d)))].mean(axis=1)
+    b, c = np.array(list(base.values())), np.array(list(cand.values()))
+    return (c[rng.integers(0, len(c), size=(count, len(c)))].mean(axis=1)
+            - b[rng.integers(0, len(b), size=(count, len(b)))].mean(axis=1))
 
 
 def compare(base: Scores, candidate: Scores, *, resamples: int = 10000,
@@ -84,14 +84,15 @@ def compare(base: Scores, candidate: Scores, *, resamples: int = 10000,
     diffs = {n: float(np.mean(list(candidate[n].values())) - np.mean(list(base[n].values())))
              for n in names}
     rng = np.random.default_rng(seed)
-    draws = np.empty(resamples)
-    for i in range(resamples):
-        picked = rng.integers(0, len(names), size=len(names))
-        draws[i] = np.mean([_draw(rng, base[names[j]], candidate[names[j]]) for j in picked])
-    low, high = np.percentile(draws, [2.5, 97.5])
-    values = np.array(list(diffs.values()))
-    return Comparison(diffs, float(values.mean()), float(low), float(high),
-                      int((values < 0).sum()))
+    picks = rng.integers(0, len(names), size=(resamples, len(names)))   # sequences drawn
+    values = np.empty(picks.shape)
+    for j, name in enumerate(names):      # each time a sequence is drawn, its seeds are too
+        where = picks == j
+        values[where] = _draws(rng, base[name], candidate[name], int(where.sum()))
+    low, high = np.percentile(values.mean(axis=1), [2.5, 97.5])
+    per_sequence = np.array(list(diffs.values()))
+    return Comparison(diffs, float(per_sequence.mean()), float(low), float(high),
+                      int((per_sequence < 0).sum()))
 
 
 def sequence_means(scores: Scores) -> dict[str, float]:
