@@ -11,6 +11,7 @@ import signal
 import sys
 
 STOPPED_LOADING = 'stopped (Ctrl-C or SIGTERM) while the node was loading'
+OUTSIDE_HANDLING = 'stopped (Ctrl-C) outside the node\'s own stop handling'
 
 
 class _Stopped(BaseException):
@@ -39,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return module.main()
     except KeyboardInterrupt:     # a Ctrl-C before the node's own handling was in place
-        print(STOPPED_LOADING, file=sys.stderr, flush=True)
+        print(OUTSIDE_HANDLING, file=sys.stderr, flush=True)
         return 0
 
 
