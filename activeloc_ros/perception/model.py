@@ -39,9 +39,7 @@ features, each frame divided by its RMS under the default `feature_norm='frame_r
 Defaults that differ from the paper, each measured (see the field helps): feature_norm,
 attn_rescale, Adam at 1e-3 instead of 1e-6, adaptive boost off, encoder frozen, the
 motion weight 2*sigmoid(|d|)-1 (the literal sigmoid(d) is 0.5 where nothing moves),
-ego_motion (bench screen, dev set, mean AAE 19.1 deg with it vs 20.8 without; its
-ego_warp 'features' against 'image' with vgg19: 19.02 vs 19.24 deg at seed 0, 19.18 vs 19.40
-at seed 1, at 422 vs 678 ms a frame), conv_padding (below) and vgg19 for the paper's vgg16
+conv_padding (below) and vgg19 for the paper's vgg16
 (whose weights no registry here holds), run in int8 (`encoder_precision`), with the
 predictor's products in bfloat16 where the CPU computes it natively.
 
