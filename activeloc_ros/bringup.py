@@ -876,10 +876,21 @@ def _interrupt(signum, frame):
 
 def main(argv=None) -> int:
     started = time.monotonic()
+    # the heavy extensions load first, a stop only noted meanwhile: an exception raised
+    # inside an extension's initialisation can abort the process (exit 134) or make Python
+    # end it with SIGINT (-2) however it was handled
+    asked: list[int] = []
+    previous = {sig: signal.signal(sig, lambda signum, frame: asked.append(signum))
+                for sig in (signal.SIGINT, signal.SIGTERM)}
+    import cv2  # noqa: F401
+    import torch  # noqa: F401
+    signal.signal(signal.SIGINT, previous[signal.SIGINT])
     # until the graph's own stop handling is in place (`StopRequest`), a SIGTERM stops
     # bringup's checks as a Ctrl-C does: at once, no node started, no traceback
-    previous = signal.signal(signal.SIGTERM, _interrupt)
+    signal.signal(signal.SIGTERM, _interrupt)
     try:
+        if asked:
+            raise KeyboardInterrupt
         args = parse_args(sys.argv[1:] if argv is None else argv)
         try:
             import rclpy  # noqa: F401
@@ -897,7 +908,7 @@ def main(argv=None) -> int:
               '(Ctrl-C or SIGTERM), before any node was started', flush=True)
         return 0
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGTERM, previous[signal.SIGTERM])
 
 
 if __name__ == '__main__':

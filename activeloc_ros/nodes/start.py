@@ -3,7 +3,7 @@
 A node's module loads torch, OpenCV or OpenVINO before its own stop handling
 (`ros_params.run`) is in place, which takes seconds; a Ctrl-C or SIGTERM then came out as a
 KeyboardInterrupt traceback and a failed exit. Here a stop while the module loads ends the
-process at once and cleanly (exit 0, a line saying so); then the node's ``main`` runs with
+process cleanly once the module is loaded (exit 0, a line saying so); then the node's ``main`` runs with
 the signal handling it always had.
 """
 import importlib
@@ -14,12 +14,13 @@ STOPPED_LOADING = 'stopped (Ctrl-C or SIGTERM) while the node was loading'
 OUTSIDE_HANDLING = 'stopped (Ctrl-C) outside the node\'s own stop handling'
 
 
-class _Stopped(BaseException):
-    """A stop while the node's module loads (a BaseException: nothing may swallow it)."""
+_stop_asked: list[int] = []     # the signals that came while the module loaded
 
 
 def _stop(signum, frame):
-    raise _Stopped(signum)
+    # no exception: one raised inside an extension's initialisation (torch's C++) can abort
+    # the process or make Python end it with SIGINT however it was handled
+    _stop_asked.append(signum)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -30,12 +31,12 @@ def main(argv: list[str] | None = None) -> int:
     previous = {sig: signal.signal(sig, _stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         module = importlib.import_module(f'activeloc_ros.nodes.{argv[0]}_node')
-    except _Stopped:
-        print(STOPPED_LOADING, file=sys.stderr, flush=True)
-        return 0
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+    if _stop_asked:              # the node was never made: nothing to stop but the process
+        print(STOPPED_LOADING, file=sys.stderr, flush=True)
+        return 0
     sys.argv = [module.__file__, *argv[1:]]
     try:
         return module.main()
