@@ -87,7 +87,7 @@ class FrameDifference:
         """(rows, cols) change per cell, grey levels; None on the first frame."""
         img = cv2.resize(np.asarray(rgb, dtype=np.uint8), (self.size, self.size),
                          interpolation=cv2.INTER_AREA)
-        current = grey(img)
+        current = self._picture(img)
         warp = None
         if self.ego is not None:
             keys = self.ego.keypoints(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY))
@@ -98,11 +98,18 @@ class FrameDifference:
         self.moved = warp is not None
         if previous is None:
             return None
-        change = residual(previous, current, warp, tolerance_px=self.tolerance_px)
-        return cell_means(change, self.grid)
+        return cell_means(self._change(previous, current, warp), self.grid)
+
+    def _picture(self, img: np.ndarray) -> np.ndarray:
+        """What is kept of a frame to compare the next with: blurred grey, float32."""
+        return grey(img)
+
+    def _change(self, previous: np.ndarray, current: np.ndarray,
+                warp: np.ndarray | None) -> np.ndarray:
+        return residual(previous, current, warp, tolerance_px=self.tolerance_px)
 
 
-class FlowMagnitude:
+class FlowMagnitude(FrameDifference):
     """Dense optical flow (OpenCV's DIS) with the camera's own motion taken out as
     `FrameDifference` takes it out: per grid cell, the mean length (pixels of the working
     size) of the flow from the previous frame, warped into the new view, to this one.
@@ -111,34 +118,17 @@ class FlowMagnitude:
     """
 
     def __init__(self, *, size: int = 224, grid: tuple[int, int] = (14, 14)):
-        self.size = size
-        self.grid = grid
-        self.ego = egomotion.EgoMotion(model='homography')
+        super().__init__(size=size, grid=grid, ego_motion=True)
         self.flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-        self.reset()
 
-    def reset(self) -> None:
-        self.previous = None          # (S, S) uint8 grey of the previous frame
-        self.keys = None
-        self.moved = False
+    def _picture(self, img: np.ndarray) -> np.ndarray:
+        return cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)       # DIS takes uint8 grey
 
-    def step(self, rgb: np.ndarray) -> np.ndarray | None:
-        """(rows, cols) mean flow length per cell, px; None on the first frame."""
-        img = cv2.resize(np.asarray(rgb, dtype=np.uint8), (self.size, self.size),
-                         interpolation=cv2.INTER_AREA)
-        current = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
-        keys = self.ego.keypoints(current)
-        warp = None
-        if self.keys is not None:
-            warp = self.ego.estimate(self.keys, keys, (self.size, self.size))
-        self.keys = keys
-        previous, self.previous = self.previous, current
-        self.moved = warp is not None
-        if previous is None:
-            return None
+    def _change(self, previous: np.ndarray, current: np.ndarray,
+                warp: np.ndarray | None) -> np.ndarray:
         previous, seen = into_view(previous, warp)
         flow = self.flow.calc(previous, current, None)
         length = np.hypot(flow[..., 0], flow[..., 1]).astype(np.float32)
         if seen is not None:      # what the old view did not see has no flow to measure
             length[cv2.erode(seen, np.ones((3, 3), np.uint8)) == 0] = 0.0
-        return cell_means(length, self.grid)
+        return length
