@@ -439,6 +439,16 @@ def ros_args_problem(args: list[str]) -> str | None:
     return None
 
 
+def ignore_late_stops() -> None:
+    """Ignore Ctrl-C and SIGTERM from now on: the node is gone and the process only ends.
+    A stop that comes then (bringup's, when a node that ended by itself is stopped in the
+    same moment) has nothing left to stop, but Python, finalising, puts its handlers back to
+    the default first, so it would kill the process (exit -2 or -15) in the middle of its
+    exit."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
+
+
 def run(node_factory: Callable[..., Any], args=None, *,
         on_stop: Callable[[Any], None] | None = None,
         help_text: Callable[[], str] | None = None) -> int:
@@ -522,6 +532,7 @@ def run(node_factory: Callable[..., Any], args=None, *,
             node.destroy_node()
         rclpy.try_shutdown()
         _process_args.clear()
+        ignore_late_stops()
     failure = getattr(node, 'failure', None)
     if failure:
         print(f'error: {failure}', file=sys.stderr)

@@ -34,15 +34,18 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    if _stop_asked:              # the node was never made: nothing to stop but the process
-        print(STOPPED_LOADING, file=sys.stderr, flush=True)
-        return 0
-    sys.argv = [module.__file__, *argv[1:]]
+    from activeloc_ros.nodes.ros_params import ignore_late_stops
     try:
+        if _stop_asked:          # the node was never made: nothing to stop but the process
+            print(STOPPED_LOADING, file=sys.stderr, flush=True)
+            return 0
+        sys.argv = [module.__file__, *argv[1:]]
         return module.main()
     except KeyboardInterrupt:     # a Ctrl-C before the node's own handling was in place
         print(OUTSIDE_HANDLING, file=sys.stderr, flush=True)
         return 0
+    finally:
+        ignore_late_stops()
 
 
 if __name__ == '__main__':
