@@ -46,6 +46,32 @@ class Plan:
         return all(math.hypot(x - ox, y - oy) >= r + radius
                    for ox, oy, r in (*self.obstacles, *movers))
 
+    def slide(self, x: float, y: float, dx: float, dy: float, radius: float, *,
+              movers: Sequence[tuple[float, float, float]] = ()) -> tuple[float, float]:
+        """Where a disc of ``radius`` at (x, y) that moves by (dx, dy) ends: there if that is
+        free; else the part of the move along what it touches, with the part into each
+        obstacle, mover or wall taken out (it slides along them, as a character of a game
+        engine does); else where it is."""
+        if self.free(x + dx, y + dy, radius, movers=movers):
+            return x + dx, y + dy
+        x0, y0, x1, y1 = self.bounds
+        nx, ny = x + dx, y + dy
+        if (nx - radius < x0 and dx < 0) or (nx + radius > x1 and dx > 0):
+            dx = 0.0
+        if (ny - radius < y0 and dy < 0) or (ny + radius > y1 and dy > 0):
+            dy = 0.0
+        for ox, oy, r in (*self.obstacles, *movers):
+            if math.hypot(nx - ox, ny - oy) < r + radius:
+                away = math.hypot(x - ox, y - oy)
+                if away > 0:
+                    ux, uy = (x - ox) / away, (y - oy) / away
+                    into = dx * ux + dy * uy
+                    if into < 0:
+                        dx, dy = dx - into * ux, dy - into * uy
+        if (dx or dy) and self.free(x + dx, y + dy, radius, movers=movers):
+            return x + dx, y + dy
+        return x, y
+
     def free_point(self, rng: np.random.Generator, *, margin: float) -> tuple[float, float]:
         x0, y0, x1, y1 = self.bounds
         for _ in range(1000):

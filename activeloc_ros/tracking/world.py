@@ -286,10 +286,11 @@ class TrackingWorld:
     def _drive(self, twist: Twist, dt: float) -> None:
         b = self.base
         b.heading = math.remainder(b.heading + twist.turn * dt, math.tau)
-        nx = b.x + twist.forward * dt * math.cos(b.heading)
-        ny = b.y + twist.forward * dt * math.sin(b.heading)
-        if self.plan.free(nx, ny, BASE_RADIUS, movers=self._movers()):
-            b.x, b.y = nx, ny                   # a bump stops it, it does not pass
+        # a bump does not pass: the base slides along what it touches, as gym-unrealcv's
+        # tracker (an Unreal character) does, instead of staying pinned in front of a tree
+        b.x, b.y = self.plan.slide(b.x, b.y, twist.forward * dt * math.cos(b.heading),
+                                   twist.forward * dt * math.sin(b.heading), BASE_RADIUS,
+                                   movers=self._movers())
 
     def _movers(self) -> list[tuple[float, float, float]]:
         return [(w.x, w.y, PERSON_RADIUS) for _, w, _ in self.people]
