@@ -17,6 +17,7 @@ from activeloc_ros.control.base import (
 from activeloc_ros.control.pd import PDConfig
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.tracking import reward
+from activeloc_ros.tracking.reward import lost_cause
 from activeloc_ros.tracking.scenes import Plan
 from activeloc_ros.tracking.world import TrackingConfig, TrackingWorld
 from conftest import REPO
@@ -171,6 +172,25 @@ def test_a_base_that_bumps_slides_along_what_it_touches(x, y, dx, dy, expected):
         assert ny > y and math.hypot(nx - 2.0, ny) >= 0.8 - 1e-9 and nx > x - 0.2
 
 
+@pytest.mark.parametrize('blocked, hidden, outside, expected', [
+    (30, 30, 0, 'pinned'),            # held back by a bump on half the last 60 steps
+    (29, 20, 0, 'hidden'),            # in the view, unseen, on a third
+    (0, 19, 20, 'out of view'),
+    (0, 19, 19, 'other'),
+])
+def test_a_lost_episode_is_told_why(blocked, hidden, outside, expected):
+    """The causes `bench tracking` counts for the episodes that lost their person."""
+    steps = 80                                      # the rule reads the last 60
+    seen = [True] * steps
+    bearing = [5.0] * steps
+    for k in range(hidden):
+        seen[-1 - k] = False
+    for k in range(hidden, hidden + outside):
+        seen[-1 - k], bearing[-1 - k] = False, -60.0
+    held = [False] * (steps - blocked) + [True] * blocked
+    assert lost_cause(seen, bearing, held, half_fov_deg=45.0) == expected
+
+
 def wall_scan(distance: float, half_width: float, t: float = 0.0) -> Scan:
     """A scan of a post ``distance`` m straight ahead, ``half_width`` m each side."""
     angles = np.radians(np.arange(-180.0, 180.0, 1.0))
@@ -307,6 +327,7 @@ def test_bench_tracking_smoke(tmp_path, capsys):
     oracle = next(r for r in result['methods'] if r['method'] == 'oracle')
     assert 2.0 < oracle['scenes']['room']['distance_m'] < 3.5   # starts 2.5 m behind, keeps it
     assert oracle['scenes']['room']['on_target'] == 1.0
+    assert set(oracle['scenes']['room']['lost'].values()) == {0}    # ran to its end
     assert oracle['scenes']['room']['distance_error_m'] < 0.3
     assert '| on target | distance error |' in text
     for name in ('table1.md', 'table1.csv', 'room.png'):

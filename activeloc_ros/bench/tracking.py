@@ -52,6 +52,7 @@ from activeloc_ros.data import Box
 from activeloc_ros.errors import ActivelocError, ConfigError
 from activeloc_ros.paths import write_atomic
 from activeloc_ros.progress import Progress
+from activeloc_ros.tracking.reward import LOST_CAUSES
 from activeloc_ros.tracking.scenes import PAPER_NAMES, SCENES
 
 METHODS = (*MODEL_METHODS, 'random', 'oracle', *TRACKER_METHODS)
@@ -254,6 +255,7 @@ def _run_job(job: dict) -> dict:
             if video:
                 video.finish()
             scores = {**world.episode_score().as_dict(), **pointer.scores()}
+            lost = world.lost_cause(episode.records)
     except ActivelocError as err:
         return {**where, 'error': str(err)}
     except Exception:  # noqa: B902 - one broken run must not cost the others
@@ -265,7 +267,7 @@ def _run_job(job: dict) -> dict:
     # rate can look good while the base drives into the person and loses it beside itself
     gaps = [math.dist(r.base_xy, r.target_xy) for r in rows if r.base_xy and r.target_xy]
     scores['distance_m'] = float(np.median(gaps)) if gaps else math.nan
-    return {**where, 'scores': scores, 'seconds': time.perf_counter() - started,
+    return {**where, 'scores': scores, 'lost': lost, 'seconds': time.perf_counter() - started,
             'compute_ms': float(np.mean(episode.compute_s) * 1e3) if episode.compute_s else 0.0,
             'rewards': [round(r.reward, 4) for r in rows]}
 
@@ -317,11 +319,12 @@ def summarise(runs: list[dict], methods: list[str], scenes: list[str]) -> dict:
             per_scene[scene] = {k: _mean([r['scores'][k] for r in done]) for k in SCORES}
             per_scene[scene]['episodes'] = len(done)
             per_scene[scene]['compute_ms'] = float(np.mean([r['compute_ms'] for r in done]))
+            per_scene[scene]['lost'] = {c: sum(r['lost'] == c for r in done) for c in LOST_CAUSES}
         rows.append({'method': method, 'scenes': per_scene})
     return {'methods': rows, 'scenes': scenes,
             'failed': [{k: r[k] for k in ('method', 'scene', 'episode', 'error')}
                        for r in failed],
-            'episodes': [{k: r[k] for k in ('method', 'scene', 'episode', 'scores',
+            'episodes': [{k: r[k] for k in ('method', 'scene', 'episode', 'scores', 'lost',
                                               'rewards')} for r in runs if 'error' not in r]}
 
 
@@ -358,8 +361,8 @@ def table(result: dict, methods: list[str], scenes: list[str], *, title: str) ->
               'locations on the person (inside its true box, %), the median error of the '
               'distance the forward rule reads from the method\'s box (m), ms per step:', '',
               '| method | scene | length | reward | success | bearing | in view | distance '
-              '| on target | distance error | ms |',
-              '|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|']
+              '| on target | distance error | ms | lost: pinned, hidden, out of view, other |',
+              '|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|']
     for row in result['methods']:
         if row['method'] not in methods:
             continue
@@ -370,7 +373,8 @@ def table(result: dict, methods: list[str], scenes: list[str], *, title: str) ->
                              f'{s["reward"]:.1f} | {100 * s["success"]:.0f}% | '
                              f'{s["aae_deg"]:.1f} | {100 * s["in_view"]:.0f} | '
                              f'{s["distance_m"]:.1f} | {_number(100 * s["on_target"], 0)} | '
-                             f'{_number(s["distance_error_m"], 2)} | {s["compute_ms"]:.0f} |')
+                             f'{_number(s["distance_error_m"], 2)} | {s["compute_ms"]:.0f} | '
+                             + ', '.join(str(s['lost'][c]) for c in LOST_CAUSES) + ' |')
     return '\n'.join(lines) + '\n'
 
 

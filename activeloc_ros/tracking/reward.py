@@ -72,3 +72,23 @@ class EpisodeScore:
 def score(rewards: Sequence[float], relaxed: Sequence[float], max_steps: int) -> EpisodeScore:
     """The scores of an episode from its steps' rewards."""
     return EpisodeScore(len(rewards), float(sum(rewards)), float(sum(relaxed)), max_steps)
+
+
+LOST_CAUSES = ('pinned', 'hidden', 'out of view', 'other')
+
+
+def lost_cause(seen: Sequence[bool], bearing_deg: Sequence[float], blocked: Sequence[bool],
+               *, half_fov_deg: float, window: int = 60) -> str:
+    """Why an episode lost its target, from its last ``window`` steps: ``pinned`` when a
+    bump held the base back on half of them or more, else ``hidden`` when the target stood
+    inside the view unseen (an obstacle between them) on a third or more, else ``out of
+    view`` when it stood outside the view on a third or more, else ``other``."""
+    seen, bearing, blocked = (list(x)[-window:] for x in (seen, bearing_deg, blocked))
+    inside = [abs(b) < half_fov_deg for b in bearing]
+    if 2 * sum(blocked) >= len(blocked):
+        return 'pinned'
+    if 3 * sum(i and not s for i, s in zip(inside, seen)) >= len(seen):
+        return 'hidden'
+    if 3 * sum(not i for i in inside) >= len(inside):
+        return 'out of view'
+    return 'other'

@@ -221,6 +221,8 @@ class TrackingWorld:
         self.lost_run = 0
         self.rewards: list[float] = []
         self.rewards_relaxed: list[float] = []
+        self.blocked: list[bool] = []      # per scored step: a bump held the base back
+        self._held_back = False
         self.view: View | None = None
         self.pan = self.tilt = 0.0
 
@@ -288,9 +290,12 @@ class TrackingWorld:
         b.heading = math.remainder(b.heading + twist.turn * dt, math.tau)
         # a bump does not pass: the base slides along what it touches, as gym-unrealcv's
         # tracker (an Unreal character) does, instead of staying pinned in front of a tree
-        b.x, b.y = self.plan.slide(b.x, b.y, twist.forward * dt * math.cos(b.heading),
+        x, y = b.x, b.y
+        b.x, b.y = self.plan.slide(x, y, twist.forward * dt * math.cos(b.heading),
                                    twist.forward * dt * math.sin(b.heading), BASE_RADIUS,
                                    movers=self._movers())
+        if math.hypot(b.x - x, b.y - y) < 0.5 * abs(twist.forward) * dt:
+            self._held_back = True
 
     def _movers(self) -> list[tuple[float, float, float]]:
         return [(w.x, w.y, PERSON_RADIUS) for _, w, _ in self.people]
@@ -347,6 +352,8 @@ class TrackingWorld:
         relaxed = rewards.reward_relaxed(distance, bearing, rho=self.config.start_distance)
         self.rewards.append(r)
         self.rewards_relaxed.append(relaxed)
+        self.blocked.append(self._held_back)
+        self._held_back = False
         self.lost_run = self.lost_run + 1 if r <= rewards.LOST else 0
         return r, relaxed, bearing
 
@@ -363,6 +370,14 @@ class TrackingWorld:
 
     def episode_score(self) -> rewards.EpisodeScore:
         return rewards.score(self.rewards, self.rewards_relaxed, self.config.max_steps)
+
+    def lost_cause(self, records) -> str | None:
+        """Why the episode of these records lost its target (`rewards.lost_cause`); None
+        when it ran to its end."""
+        if len(self.rewards) >= self.config.max_steps:
+            return None
+        return rewards.lost_cause([r.in_view for r in records], [r.aae_deg for r in records],
+                                  self.blocked, half_fov_deg=self.config.hfov_deg / 2)
 
     def close(self) -> None:
         """Free the physics client and the textures (twice is harmless)."""
