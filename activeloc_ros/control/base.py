@@ -26,8 +26,8 @@ to AD-VAT's seven actions (stop, forward, backward, turn left or right, forward 
 left or right).
 
 Going round obstacles (``avoid``, our addition too: the paper's reactive agent has no
-planner, and a base that drives straight at the person runs into a tree between them and
-stays pinned there, README): with a planar range scan (`Scan`), a base going forward heads
+planner, and a base that drives straight at the person slides only slowly round a tree
+between them, README): with a planar range scan (`Scan`), a base going forward heads
 for the direction nearest the PD's that leaves a corridor ``avoid_radius`` wide on each
 side clear for ``avoid_reach`` m, looking no more than ``avoid_max_deg`` away from the
 action so that it stays in view; when every such direction is blocked it only turns. Off by
