@@ -52,10 +52,10 @@ class Plan:
         free; else the part of the move along what it touches, with the part into each
         obstacle, mover or wall taken out (it slides along them, as a character of a game
         engine does); else where it is."""
-        if self.free(x + dx, y + dy, radius, movers=movers):
-            return x + dx, y + dy
-        x0, y0, x1, y1 = self.bounds
         nx, ny = x + dx, y + dy
+        if self.free(nx, ny, radius, movers=movers):
+            return nx, ny
+        x0, y0, x1, y1 = self.bounds
         if (nx - radius < x0 and dx < 0) or (nx + radius > x1 and dx > 0):
             dx = 0.0
         if (ny - radius < y0 and dy < 0) or (ny + radius > y1 and dy > 0):
