@@ -675,13 +675,15 @@ def make_log_dir(args) -> Path:
     return log_dir
 
 
-def run(args) -> int:
+def run(args, asked: list | tuple = ()) -> int:
+    """`asked`: the stops noted before the graph's own handling was in place."""
     preflight(args)
-    log_dir = make_log_dir(args)
     stop = StopRequest()
     stop.install()
     try:
-        return run_graph(args, log_dir, stop)
+        if asked:
+            raise KeyboardInterrupt
+        return run_graph(args, make_log_dir(args), stop)
     finally:
         stop.restore()
 
@@ -870,27 +872,18 @@ def summary(monitor: Monitor, elapsed: float, reason: str, codes: dict, recorder
     return '\n'.join(lines)
 
 
-def _interrupt(signum, frame):
-    raise KeyboardInterrupt
-
-
 def main(argv=None) -> int:
     started = time.monotonic()
-    # the heavy extensions load first, a stop only noted meanwhile: an exception raised
-    # inside an extension's initialisation can abort the process (exit 134) or make Python
-    # end it with SIGINT (-2) however it was handled
+    # until the graph's own stop handling is in place (`StopRequest`), a stop is only noted
+    # and acted on at one check after the preflight: an exception raised inside an import
+    # (cv2, torch, rclpy...) can abort the process (exit 134), or make Python end it with
+    # SIGINT (-2) however it was handled
     asked: list[int] = []
     previous = {sig: signal.signal(sig, lambda signum, frame: asked.append(signum))
                 for sig in (signal.SIGINT, signal.SIGTERM)}
-    import cv2  # noqa: F401
-    import torch  # noqa: F401
-    signal.signal(signal.SIGINT, previous[signal.SIGINT])
-    # until the graph's own stop handling is in place (`StopRequest`), a SIGTERM stops
-    # bringup's checks as a Ctrl-C does: at once, no node started, no traceback
-    signal.signal(signal.SIGTERM, _interrupt)
     try:
-        if asked:
-            raise KeyboardInterrupt
+        import cv2  # noqa: F401
+        import torch  # noqa: F401
         args = parse_args(sys.argv[1:] if argv is None else argv)
         try:
             import rclpy  # noqa: F401
@@ -899,7 +892,7 @@ def main(argv=None) -> int:
                   "/opt/ros/jazzy/setup.bash) or install the PyPI wheels with pip install "
                   "'.[ros]'", file=sys.stderr)
             return 2
-        return run(args)
+        return run(args, asked)
     except ActivelocError as exc:
         print(f'bringup: error: {exc}', file=sys.stderr)
         return 2
@@ -908,7 +901,8 @@ def main(argv=None) -> int:
               '(Ctrl-C or SIGTERM), before any node was started', flush=True)
         return 0
     finally:
-        signal.signal(signal.SIGTERM, previous[signal.SIGTERM])
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 if __name__ == '__main__':

@@ -414,12 +414,15 @@ def test_bringup_stopped_by_a_signal_leaves_no_node_and_a_readable_bag(tmp_path,
     assert counts['/robot1/camera/image_raw'] > 0 and counts['/robot1/surprise_map'] > 0
 
 
-@pytest.mark.parametrize('how, after', [('SIGINT', 0.8), ('SIGTERM', 2.0), ('SIGINT', 3.5),
+@pytest.mark.parametrize('how, after', [('SIGINT', 0.8), ('SIGTERM', 1.3), ('SIGINT', 1.7),
+                                        ('SIGTERM', 2.0), ('SIGTERM', 2.4), ('SIGINT', 3.5),
                                         ('SIGTERM', 5.0)])
 def test_a_stop_at_any_moment_of_the_start_is_clean(tmp_path, graph_env, how, after):
     """A Ctrl-C or SIGTERM while bringup checks, while the nodes load torch, or while they
     are being made: every node stops cleanly, no traceback anywhere, and the summary says
-    it was stopped (the moments are seconds into a start that takes about ten here)."""
+    it was stopped (the moments are seconds into a start that takes about ten here; those
+    before two seconds land in the imports and checks, where a stop raised inside an
+    import once made Python end bringup with -2 after its summary)."""
     logs = tmp_path / 'logs'
     bringup = subprocess.Popen(
         [sys.executable, '-m', 'activeloc_ros.bringup', '--duration', '30', '--log-dir',
