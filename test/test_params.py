@@ -63,7 +63,9 @@ def test_perception_yaml_repeats_the_model_defaults():
     ('fast.yaml', {'input_height': 160, 'layers': 2, 'location_prior': 3.57}),
 ])
 def test_each_other_configuration_passes_bringups_checks_and_sets_its_values(name, expected):
-    from activeloc_ros.bringup import check_node_params, node_values, parse_args
+    from activeloc_ros.bringup import parse_args
+    from activeloc_ros.graph_plan import node_values
+    from activeloc_ros.preflight import check_node_params
     path = str(PARAMS / name)
     check_node_params(parse_args(['--params', path]))      # raises on any bad key or value
     values = node_values('perception', [path])
@@ -72,7 +74,7 @@ def test_each_other_configuration_passes_bringups_checks_and_sets_its_values(nam
 
 def test_the_fast_configuration_acts_only_on_maps_above_twice_its_uniform_peak():
     """Its 10 x 10 grid's uniform map peaks at 1 / 100: the controller's min_peak follows."""
-    from activeloc_ros.bringup import node_values
+    from activeloc_ros.graph_plan import node_values
     assert node_values('controller', [str(PARAMS / 'fast.yaml')])['min_peak'] == 2 / 100
 
 
@@ -214,7 +216,8 @@ def test_a_command_line_parameter_no_node_declares_is_refused_not_ignored(contex
 def test_bringup_waits_for_the_arms_own_stop_timeout_before_sigterm(tmp_path):
     """It sent SIGTERM after 10 s and SIGKILL 3 s later whatever the arm's stop_timeout:
     an arm going home slowly was killed on the way, its serial link still open."""
-    from activeloc_ros.bringup import parse_args, stop_deadline, STOP_DEADLINE_S
+    from activeloc_ros.bringup import parse_args
+    from activeloc_ros.supervisor import stop_deadline, STOP_DEADLINE_S
     assert stop_deadline('arm', parse_args([])) == 12.0     # its default 10 s, and 2 to spare
     slow = tmp_path / 'slow.yaml'
     slow.write_text('arm:\n  ros__parameters:\n    stop_timeout: 30.0\n')
@@ -224,7 +227,7 @@ def test_bringup_waits_for_the_arms_own_stop_timeout_before_sigterm(tmp_path):
 
 
 def test_bringup_gives_each_node_only_the_settings_it_declares():
-    from activeloc_ros.bringup import for_node
+    from activeloc_ros.graph_plan import for_node
     ros_args = ['-r', '__ns:=/r1', '-p', 'kp:=0.5', '--param', 'rate:=2.0',
                 '-p', 'use_sim_time:=true', '-p', 'camera:loop:=true']
     assert for_node(ros_args, {'kp', 'use_sim_time'}) == [

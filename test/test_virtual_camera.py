@@ -393,7 +393,8 @@ def test_bringup_aim_limits_are_the_arms_or_on_request_the_screens(tmp_path):
     """As in the screen benchmark: by default only the arm limits the aim; with
     --aim-limits screen the controller gets the screen's aim limits, from the sim's
     params files, unless the user's own files set them."""
-    from activeloc_ros.bringup import node_arguments, parse_args
+    from activeloc_ros.bringup import parse_args
+    from activeloc_ros.graph_plan import node_arguments
     wider = tmp_path / 'wider.yaml'
     wider.write_text('/**:\n  ros__parameters:\n    view_fraction: 0.5\n')
     mine = tmp_path / 'mine.yaml'

@@ -19,7 +19,7 @@ import yaml
 
 from activeloc_ros.bench import output_dir
 from activeloc_ros.bench.pointers import ModelPointer
-from activeloc_ros.bringup import camera_screen, node_values
+from activeloc_ros.graph_plan import camera_screen, node_values
 from activeloc_ros.closed_loop import run_episode, screen_world
 from activeloc_ros.data import FrameTruth
 from activeloc_ros.errors import ActivelocError
