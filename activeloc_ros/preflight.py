@@ -33,8 +33,8 @@ def preflight(args) -> None:
         raise ConfigError(f'--camera {args.camera!r} names no {kind}: use '
                           f'{CAMERA_FORMS[kind]}')
     if kind == 'bag':
-        from activeloc_ros import bag
-        bag.choose_image_topic(bag.bag_facts(Path(target)))
+        from activeloc_ros.bag.read import bag_facts, choose_image_topic
+        choose_image_topic(bag_facts(Path(target)))
     elif kind in ('video', 'folder', 'virtual'):
         from activeloc_ros.sources import open_scene, open_source
         source = (open_scene(target) if kind == 'virtual'

@@ -24,7 +24,9 @@ from typing import Callable, Iterator
 import cv2
 import numpy as np
 
-from activeloc_ros import bag, data, metrics
+from activeloc_ros import data, metrics
+from activeloc_ros.bag.read import (CAMERA_INFO_TYPE, IMAGE_TYPES, bag_facts, choose_image_topic,
+                                    read_messages)
 from activeloc_ros.errors import DataError, FrameError, SourceError
 from activeloc_ros.images import decode_compressed, image_to_rgb
 from activeloc_ros.paths import share_path
@@ -77,8 +79,8 @@ class Source:
 class BagSource(Source):
     def __init__(self, path: Path, *, topic: str = ''):
         super().__init__()
-        self.facts = bag.bag_facts(path)
-        self.topic = bag.choose_image_topic(self.facts, topic)
+        self.facts = bag_facts(path)
+        self.topic = choose_image_topic(self.facts, topic)
         self.path = Path(path)
         self._k = self._recorded_camera_matrix()
         # the mean recorded rate (the virtual screen shows the frames at it)
@@ -89,8 +91,8 @@ class BagSource(Source):
 
     def _recorded_camera_matrix(self) -> np.ndarray | None:
         infos = [t.name for t in self.facts.topics
-                 if t.msgtype == bag.CAMERA_INFO_TYPE and t.count > 0]
-        for _, _, _, msg in bag.read_messages(self.path, infos[:1]):
+                 if t.msgtype == CAMERA_INFO_TYPE and t.count > 0]
+        for _, _, _, msg in read_messages(self.path, infos[:1]):
             k = np.asarray(msg.k, dtype=float).reshape(3, 3)
             if k[0, 0] > 0 and k[1, 1] > 0:
                 return k
@@ -98,8 +100,8 @@ class BagSource(Source):
 
     def rewind(self) -> None:
         self.close()
-        self._messages: Iterator = bag.read_messages(self.path, [self.topic.name],
-                                                     skipped=self.skipped)
+        self._messages: Iterator = read_messages(self.path, [self.topic.name],
+                                                 skipped=self.skipped)
         self._index = 0
 
     def close(self) -> None:
@@ -108,7 +110,7 @@ class BagSource(Source):
 
     def read(self) -> Frame | None:
         for _, msgtype, log_ns, msg in self._messages:
-            if msgtype not in bag.IMAGE_TYPES:     # a topic may carry more than one type
+            if msgtype not in IMAGE_TYPES:     # a topic may carry more than one type
                 self.skipped[f'not an image: {msgtype}'] += 1
                 continue
             try:

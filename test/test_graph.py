@@ -263,7 +263,7 @@ def test_an_arm_link_that_gives_up_fails_the_run_in_either_form(tmp_path, graph_
 
 
 def write_text_bag(path):
-    from activeloc_ros.bag import BagWriter
+    from activeloc_ros.bag.write import BagWriter
     writer = BagWriter(path)
     writer.write('/chatter', 'std_msgs/msg/String', 1,
                  writer.store.types['std_msgs/msg/String'](data='no images here'))
@@ -357,7 +357,7 @@ MAPS_SEEN = re.compile(r'\| maps +([0-9.]+) fps')     # bringup's status line
 def test_bringup_stopped_by_a_signal_leaves_no_node_and_a_readable_bag(tmp_path, graph_env,
                                                                        how):
     """In a namespace (--ros-args), as two robots sharing a network would run it."""
-    from activeloc_ros.bag import bag_facts
+    from activeloc_ros.bag.read import bag_facts
     record = tmp_path / 'run'
     bringup = subprocess.Popen(
         [sys.executable, '-m', 'activeloc_ros.bringup', '--loop', '--record', str(record),
@@ -444,7 +444,7 @@ def test_a_stop_at_any_moment_of_the_start_is_clean(tmp_path, graph_env, how, af
 
 
 def write_mono16_bag(path, frames=3):
-    from activeloc_ros.bag import BagWriter
+    from activeloc_ros.bag.write import BagWriter
     writer = BagWriter(path)
     Image = writer.store.types['sensor_msgs/msg/Image']
     Header = writer.store.types['std_msgs/msg/Header']

@@ -1,5 +1,6 @@
 """Recordings survive what ends them: a full disk, a killed writer (`bag reindex`)."""
 import errno
+import importlib.util
 import subprocess
 import sys
 
@@ -7,8 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from activeloc_ros import bag
-from activeloc_ros.bag import BagWriter, bag_facts, reindex, RecordingError
+from activeloc_ros.bag.read import bag_facts
+from activeloc_ros.bag.recover import reindex
+from activeloc_ros.bag.write import BagWriter, RecordingError
 from conftest import REPO
 
 PAYLOAD = 100_000          # bytes a message: about ten to a 1 MiB chunk
@@ -124,23 +126,26 @@ def test_reindex_refuses_what_is_not_a_bag(tmp_path):
 
 
 def test_make_sample_replaces_a_bag_but_never_another_folder(tmp_path, capsys):
+    spec = importlib.util.spec_from_file_location('make_sample', REPO / 'bags' / 'make_sample.py')
+    make_sample = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(make_sample)
     video = tmp_path / 'clip.avi'
     writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*'MJPG'), 10.0, (64, 48))
     for i in range(4):
         writer.write(np.full((48, 64, 3), 40 * i, np.uint8))
     writer.release()
     out = tmp_path / 'sample'
-    args = ['make-sample', '--video', str(video), '--out', str(out), '--width', '32']
-    assert bag.main(args) == 0 and bag_facts(out).message_count == 4
-    assert bag.main(args + ['--frames', '2']) == 0 and bag_facts(out).message_count == 2
+    args = ['--video', str(video), '--out', str(out), '--width', '32']
+    assert make_sample.main(args) == 0 and bag_facts(out).message_count == 4
+    assert make_sample.main(args + ['--frames', '2']) == 0 and bag_facts(out).message_count == 2
     precious = tmp_path / 'precious'
     precious.mkdir()
     (precious / 'notes.txt').write_text('kept')
-    assert bag.main(['make-sample', '--video', str(video), '--out', str(precious)]) == 1
+    assert make_sample.main(['--video', str(video), '--out', str(precious)]) == 1
     assert 'is not a bag' in capsys.readouterr().err
     assert (precious / 'notes.txt').read_text() == 'kept'
-    assert bag.main(args + ['--width', '0']) == 1 and 'width' in capsys.readouterr().err
-    assert bag.main(['make-sample', '--video', str(video), '--out', '/proc/x/y']) == 1
+    assert make_sample.main(args + ['--width', '0']) == 1 and 'width' in capsys.readouterr().err
+    assert make_sample.main(['--video', str(video), '--out', '/proc/x/y']) == 1
     assert capsys.readouterr().err.startswith('error:')
     assert sorted(p.name for p in tmp_path.iterdir()) == ['clip.avi', 'precious', 'sample']
 

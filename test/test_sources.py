@@ -5,7 +5,8 @@ import cv2
 import numpy as np
 import pytest
 
-from activeloc_ros import bag
+from activeloc_ros.bag.read import bag_facts, choose_image_topic, format_facts, read_messages
+from activeloc_ros.bag.write import BagWriter
 from activeloc_ros.errors import FrameError, SourceError
 from activeloc_ros.images import image_to_rgb, rgb_to_image_fields
 from activeloc_ros.sources import open_source, Pacer, pinhole_matrix
@@ -49,13 +50,13 @@ def test_bad_images_raise_frame_error(encoding, height, width, step, size, match
 
 
 def test_sample_bag_facts():
-    facts = bag.bag_facts(SAMPLE)
-    topic = bag.choose_image_topic(facts)
+    facts = bag_facts(SAMPLE)
+    topic = choose_image_topic(facts)
     assert topic.msgtype == 'sensor_msgs/msg/CompressedImage'
     assert topic.count == facts.message_count > 100
     assert 20.0 < facts.duration_s < 60.0
     assert facts.size_bytes < 20 * 2**20
-    text = bag.format_facts(facts)
+    text = format_facts(facts)
     assert 'Storage id:        mcap' in text and topic.name in text
 
 
@@ -72,7 +73,7 @@ def test_bag_source_reads_frames_in_order():
 
 def write_bag(path, messages):
     """messages: (topic, msgtype, builder(store) -> msg)"""
-    writer = bag.BagWriter(path)
+    writer = BagWriter(path)
     for i, (topic, msgtype, build) in enumerate(messages):
         writer.write(topic, msgtype, 10**9 + i * 10**8, build(writer.store))
     writer.close()
@@ -132,20 +133,20 @@ def test_bag_without_image_topic(tmp_path):
 
 def test_missing_empty_and_corrupt_bags(tmp_path):
     with pytest.raises(SourceError, match='not found'):
-        bag.bag_facts(tmp_path / 'nope.mcap')
+        bag_facts(tmp_path / 'nope.mcap')
     (tmp_path / 'empty.mcap').write_bytes(b'')
     with pytest.raises(SourceError, match='empty'):
-        bag.bag_facts(tmp_path / 'empty.mcap')
+        bag_facts(tmp_path / 'empty.mcap')
     good = (SAMPLE / 'vtest.mcap').read_bytes()
     (tmp_path / 'cut.mcap').write_bytes(good[:len(good) // 2])
     with pytest.raises(SourceError, match='cut.mcap'):
-        bag.bag_facts(tmp_path / 'cut.mcap')
+        bag_facts(tmp_path / 'cut.mcap')
     (tmp_path / 'junk.mcap').write_bytes(b'not an mcap file at all' * 10)
     with pytest.raises(SourceError, match='junk.mcap'):
-        bag.bag_facts(tmp_path / 'junk.mcap')
+        bag_facts(tmp_path / 'junk.mcap')
     (tmp_path / 'folder').mkdir()
     with pytest.raises(SourceError, match='no .mcap'):
-        bag.bag_facts(tmp_path / 'folder')
+        bag_facts(tmp_path / 'folder')
 
 
 def test_a_corrupt_message_is_skipped_and_named_and_the_rest_is_read(tmp_path):
@@ -169,7 +170,7 @@ def test_a_corrupt_message_is_skipped_and_named_and_the_rest_is_read(tmp_path):
     assert dict(source.skipped) == {
         f'corrupt {schema.name} message on {channel.topic}': 1}
     with pytest.raises(SourceError, match=r'one_bad.mcap: corrupt .* at log time 1.100 s'):
-        list(bag.read_messages(path, [channel.topic]))
+        list(read_messages(path, [channel.topic]))
 
 
 def test_video_and_folder_sources(tmp_path):

@@ -416,7 +416,7 @@ def test_bringup_aim_limits_are_the_arms_or_on_request_the_screens(tmp_path):
 
 
 def test_recorded_poses_read_back_per_frame(tmp_path):
-    from activeloc_ros.bag import BagWriter
+    from activeloc_ros.bag.write import BagWriter
     from activeloc_ros.nodes.lockstep import recorded_poses
     writer = BagWriter(tmp_path / 'run')
     types = writer.store.types

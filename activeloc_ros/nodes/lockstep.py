@@ -137,9 +137,9 @@ def recorded_poses(path: Path) -> list[tuple[float, float, float]]:
     """(t, pan, tilt) of every frame of a recorded run (``bringup --record``) with a virtual
     camera: its ``camera/pose`` messages, t in seconds of their stamp (the image's, whole
     nanoseconds: frame i is ``round(t * fps)``), pan and tilt in radians, in time order."""
-    from activeloc_ros import bag
+    from activeloc_ros.bag.read import read_messages
     rows = []
-    for _, _, _, msg in bag.read_messages(Path(path), [POSE_TOPIC]):
+    for _, _, _, msg in read_messages(Path(path), [POSE_TOPIC]):
         pose = dict(zip(msg.name, msg.position))
         stamp = msg.header.stamp
         rows.append((stamp.sec + stamp.nanosec / 1e9, float(pose['pan']), float(pose['tilt'])))

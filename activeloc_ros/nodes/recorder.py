@@ -19,7 +19,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosbags.typesys import TypesysError
 
-from activeloc_ros.bag import BagWriter, RecordingError
+from activeloc_ros.bag.write import BagWriter, RecordingError
 from activeloc_ros.nodes.qos import offered_reliability
 
 IGNORED = ('/rosout', '/parameter_events')
