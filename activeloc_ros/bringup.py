@@ -166,7 +166,7 @@ def run_graph(args, log_dir: Path, stop: StopRequest) -> int:
     context = rclpy.Context()
     rclpy.init(context=context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     from activeloc_ros.nodes.in_process import InProcessGraph
-    from activeloc_ros.nodes.ros_params import lean_executor
+    from activeloc_ros.nodes.process import lean_executor
     monitor = Monitor(context, lockstep=args.mode == 'lockstep',
                       arm_node='arm' in graph_nodes(args), base=bool(args.world),
                       cli_args=own_ros_args(args))

@@ -1,7 +1,7 @@
 """Pure value checks for configuration: each returns an error message, or None when valid.
 
 ROS-free, so the model's config and the nodes' ROS parameters share them. A closed interval
-is a ``Range``, which ``ros_params`` also writes into the parameter's descriptor (so
+is a ``Range``, which ``nodes.params`` also writes into the parameter's descriptor (so
 ``ros2 param describe`` shows it and rclpy enforces it): one declaration, two uses.
 """
 from dataclasses import dataclass, fields

@@ -73,7 +73,7 @@ def for_node(ros_args: list[str], declared: set[str]) -> list[str]:
     """The user's ROS arguments without the ``-p`` rules this node does not declare: each
     rule goes to the nodes it is for (`check_node_params` made sure some node is), as a
     node refuses a rule for a parameter it does not have."""
-    from activeloc_ros.nodes.ros_params import cli_param_rule, undeclared
+    from activeloc_ros.nodes.params_files import cli_param_rule, undeclared
     out, skip = [], False
     for flag, item in zip(ros_args, [*ros_args[1:], None]):
         if skip:
@@ -105,7 +105,7 @@ def screen_aim_limits(camera: str, files) -> dict[str, float]:
     screen, as the screen benchmark sets them; limits set in the user's `files` win."""
     if not camera.startswith('virtual:'):
         return {}
-    from activeloc_ros.nodes.ros_params import file_values
+    from activeloc_ros.nodes.params_files import file_values
     screen = camera_screen(files)
     own = file_values('controller', files)
     return {name: limit
@@ -122,7 +122,7 @@ def node_values(node: str, files=(), ros_args=()) -> dict:
     """A node's parameter values before it starts: its declared defaults, overlaid with its
     packaged params files (`paths.packaged_params_files`), the user's params `files`, then
     the ``-p`` settings among ``ros_args``."""
-    from activeloc_ros.nodes.ros_params import file_values
+    from activeloc_ros.nodes.params_files import file_values
     values = {p.name: p.default for p in node_params(node)}
     values.update(file_values(node, [*packaged_params_files(node), *files]))
     values.update(cli_values(list(ros_args)))
@@ -131,5 +131,5 @@ def node_values(node: str, files=(), ros_args=()) -> dict:
 
 def cli_values(ros_args: list[str]) -> dict:
     """The ``-p name:=value`` settings among ROS arguments, typed as rcl types them."""
-    from activeloc_ros.nodes.ros_params import cli_param_rules, parse_value
+    from activeloc_ros.nodes.params_files import cli_param_rules, parse_value
     return {name: parse_value(text) for name, text in cli_param_rules(ros_args)}

@@ -17,7 +17,7 @@ CAMERA_FORMS = {'bag': 'bag:PATH', 'video': 'video:PATH', 'folder': 'folder:PATH
 
 def preflight(args) -> None:
     """Every check that can fail before a node starts, with a clear message."""
-    from activeloc_ros.nodes.ros_params import ros_args_problem
+    from activeloc_ros.nodes.process import ros_args_problem
     problem = args.ros_args and ros_args_problem(['bringup', '--ros-args', *args.ros_args])
     if problem:
         raise ConfigError(problem)
@@ -89,7 +89,8 @@ def writable_folder(path: Path, option: str) -> None:
 def check_node_params(args) -> None:
     """Check every node's parameters, from its files and bringup's options, as the node
     checks them at start, so that a bad value stops the run before any node starts."""
-    from activeloc_ros.nodes.ros_params import files_problems, unknown_cli_params, validate
+    from activeloc_ros.nodes.params import validate
+    from activeloc_ros.nodes.params_files import files_problems, unknown_cli_params
     # each -p setting goes to the nodes that declare it (`for_node`): one that none of
     # them declares (a typo) would change nothing, silently
     problems = unknown_cli_params(

@@ -89,7 +89,7 @@ class StopRequest:
     bag closed. A signal while stopping is told to wait, not obeyed. While the nodes of an
     in-process graph are being made (a first use of an int8 encoder builds it for a minute)
     the first signal ends that at once, unless OpenVINO's model conversion swallows it: then
-    the graph stops once it is made (a node process ends in any case: `ros_params.run`)."""
+    the graph stops once it is made (a node process ends in any case: `process.run`)."""
 
     def __init__(self):
         self.reason: str | None = None

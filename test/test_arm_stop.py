@@ -145,7 +145,7 @@ def test_a_burst_of_sigterms_stops_a_node_cleanly(launch, tmp_path, module):
             break
         process.send_signal(signal.SIGTERM)
         time.sleep(0.002)
-    # (one that lands while Python ends the process is ignored: ros_params.ignore_late_stops)
+    # (one that lands while Python ends the process is ignored: process.ignore_late_stops)
     assert process.wait(timeout=15) == 0
     text = log.read_text()
     assert 'stopped' in text and 'Traceback' not in text, text[-2000:]
@@ -211,9 +211,9 @@ def test_a_stop_while_perception_builds_its_int8_encoder_ends_the_build(launch, 
 
 SWALLOWING_START = '''
 import sys, time
-from activeloc_ros.nodes.ros_params import run
+from activeloc_ros.nodes.process import run
 
-def make_node():                  # a start that swallows every KeyboardInterrupt
+def make_node(context):           # a start that swallows every KeyboardInterrupt
     announce = [True]
     while True:
         try:                          # the signal, sent once 'starting' is read, lands here
@@ -232,7 +232,7 @@ sys.exit(run(make_node, [], on_stop=lambda node: None))
 def test_a_start_that_swallows_the_stop_is_ended_all_the_same(tmp_path):
     """Third-party code in a node's start can swallow the KeyboardInterrupt a stop raises
     (OpenVINO's model conversion does): the process ends within the grace all the same."""
-    from activeloc_ros.nodes.ros_params import START_STOP_GRACE_S
+    from activeloc_ros.nodes.process import START_STOP_GRACE_S
     process = subprocess.Popen([sys.executable, '-c', SWALLOWING_START], cwd=REPO,
                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                                env=dict(os.environ, PYTHONUNBUFFERED='1'))

@@ -136,7 +136,7 @@ def test_an_unreadable_params_file_stops_the_process_with_its_line(tmp_path, cap
 
 def test_params_file_problems_is_a_pure_function():
     from rclpy.parameter import Parameter
-    from activeloc_ros.nodes.ros_params import params_file_problems
+    from activeloc_ros.nodes.params_files import params_file_problems
     declared = {'kp': Parameter.Type.DOUBLE, 'tilt_joints': Parameter.Type.STRING_ARRAY}
     content = {'/**': {'ros__parameters': {'kp': 2.0, 'stop_mode': 'home',
                                            'tilt_joints': ['a', 1]}},

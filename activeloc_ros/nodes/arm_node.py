@@ -35,7 +35,8 @@ from activeloc_ros.control.serial_link import BraccioLink
 from activeloc_ros.nodes.clock import Rewinds
 from activeloc_ros.nodes.masters import PublisherWatch
 from activeloc_ros.nodes.messages import joint_state
-from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
+from activeloc_ros.nodes.params import declare, node_help, Param
+from activeloc_ros.nodes.process import run
 from activeloc_ros.nodes.settings import MAPPING_PARAMS
 
 

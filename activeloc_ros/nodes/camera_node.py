@@ -17,7 +17,8 @@ from sensor_msgs.msg import CameraInfo, Image
 from activeloc_ros.checks import field_of_view, in_range, non_negative, one_of, positive
 from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.nodes.messages import camera_info, time_from_s
-from activeloc_ros.nodes.ros_params import declare, frame_due, node_help, Param, run
+from activeloc_ros.nodes.params import declare, node_help, Param
+from activeloc_ros.nodes.process import frame_due, run
 from activeloc_ros.sources import default_bag, open_source, Pacer, pinhole_matrix, Playback
 
 # Parameters without read_only take effect at once: the next frame uses them.

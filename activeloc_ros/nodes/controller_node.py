@@ -45,7 +45,8 @@ from activeloc_ros.nodes.clock import Rewinds
 from activeloc_ros.nodes.masters import PublisherWatch
 from activeloc_ros.nodes.messages import (
     arm_joints_deg, joint_state, region_box, scan_from, stamp_ns, stamp_s)
-from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
+from activeloc_ros.nodes.params import declare, node_help, Param
+from activeloc_ros.nodes.process import run
 from activeloc_ros.nodes.settings import MAPPING_PARAMS, mapping_from
 
 

@@ -41,7 +41,8 @@ from activeloc_ros.images import (decode_compressed, float_image_fields, image_t
 from activeloc_ros.nodes.health import PipelineStats
 from activeloc_ros.nodes.messages import region_message, stamp_s
 from activeloc_ros.nodes.qos import offered_reliability
-from activeloc_ros.nodes.ros_params import declare, node_help, Param, run
+from activeloc_ros.nodes.params import declare, node_help, Param
+from activeloc_ros.nodes.process import run
 from activeloc_ros.perception.config import PerceptionConfig
 from activeloc_ros.perception.model import PerceptionResult, SurpriseModel
 from activeloc_ros.perception.pipeline import Pipeline

@@ -9,7 +9,7 @@ screen from its parameter values, without the node.
 from activeloc_ros.checks import one_of
 from activeloc_ros.control import ArmMapping, HOME_DEG, JOINT_NAMES, pose_problem
 from activeloc_ros.errors import ConfigError
-from activeloc_ros.nodes.ros_params import Param
+from activeloc_ros.nodes.params import Param
 from activeloc_ros.screen import ScreenConfig
 
 

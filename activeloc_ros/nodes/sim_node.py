@@ -34,7 +34,8 @@ from activeloc_ros.nodes.lockstep import Lockstep, moot_in_lockstep, time_ns
 from activeloc_ros.nodes.masters import PublisherWatch
 from activeloc_ros.nodes.messages import (
     arm_joints_deg, camera_info, joint_state, stamp_ns, time_from_ns)
-from activeloc_ros.nodes.ros_params import declare, frame_due, node_help, Param, run
+from activeloc_ros.nodes.params import declare, node_help, Param
+from activeloc_ros.nodes.process import frame_due, run
 from activeloc_ros.nodes.settings import MAPPING_PARAMS, mapping_from, SCREEN_PARAMS, screen_from
 from activeloc_ros.screen import VirtualScreen
 from activeloc_ros.sources import (

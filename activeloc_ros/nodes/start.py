@@ -1,7 +1,7 @@
 """How bringup starts a node's process: ``python -m activeloc_ros.nodes.start NODE ARGS``.
 
 A node's module loads torch, OpenCV or OpenVINO before its own stop handling
-(`ros_params.run`) is in place, which takes seconds; a Ctrl-C or SIGTERM then came out as a
+(`process.run`) is in place, which takes seconds; a Ctrl-C or SIGTERM then came out as a
 KeyboardInterrupt traceback and a failed exit. Here a stop while the module loads ends the
 process cleanly once the module is loaded (exit 0, a line saying so); then the node's ``main`` runs with
 the signal handling it always had.
@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    from activeloc_ros.nodes.ros_params import ignore_late_stops
+    from activeloc_ros.nodes.process import ignore_late_stops
     try:
         if _stop_asked:          # the node was never made: nothing to stop but the process
             print(STOPPED_LOADING, file=sys.stderr, flush=True)

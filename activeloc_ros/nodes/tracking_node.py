@@ -38,7 +38,8 @@ from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.nodes.lockstep import ANSWER, Lockstep, moot_in_lockstep
 from activeloc_ros.nodes.masters import PublisherWatch
 from activeloc_ros.nodes.messages import camera_info, scan_message, stamp_ns, time_from_ns
-from activeloc_ros.nodes.ros_params import declare, frame_due, node_help, Param, run
+from activeloc_ros.nodes.params import declare, node_help, Param
+from activeloc_ros.nodes.process import frame_due, run
 from activeloc_ros.tracking.scenes import SCENES
 from activeloc_ros.tracking.world import TARGETS, TrackingConfig, TrackingWorld
 
