@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from activeloc_ros import data
-from activeloc_ros.bench import passive
+from activeloc_ros.bench import passive, passive_maps
 
 W, H, SIDE = 140, 112, 12  # cells of 10 x 8 pixels
 
@@ -41,7 +41,7 @@ def make_moving_square(root: Path, name: str = 'square', n: int = 10) -> Path:
 
 def test_frame_differencing_finds_the_moving_square(tmp_path):
     seq = data.load_sequence(make_moving_square(tmp_path))
-    method = passive.FrameDiff()
+    method = passive_maps.FrameDiff()
     tallies, _ = passive.run_sequence(seq, [method], max_frames=None, warmup=1)
     assert tallies['framediff'].hits == [True] * 9
     # the peak itself sits on the square's path, not just within the grown box
@@ -57,7 +57,7 @@ def test_frame_differencing_finds_the_moving_square(tmp_path):
 
 def test_centre_and_random_baselines(tmp_path):
     seq = data.load_sequence(make_moving_square(tmp_path))
-    centre, rand = passive.CentreBias(), passive.RandomMap(seed=3)
+    centre, rand = passive_maps.CentreBias(), passive_maps.RandomMap(seed=3)
     first = next(seq.frames())
     pointing = centre.locate(passive.view_of(first, seq.fps))
     assert passive.heat_and_point(pointing, (W, H))[1] == (70.0, 56.0)
@@ -65,7 +65,7 @@ def test_centre_and_random_baselines(tmp_path):
     # the square passes the centre around frames 5-6 only
     assert 1 <= sum(tallies['centre'].hits) <= 4
     assert len(tallies['random'].aucs) == 10 and 0 < chance < 0.1
-    again, _ = passive.run_sequence(seq, [passive.RandomMap(seed=3)], max_frames=None,
+    again, _ = passive.run_sequence(seq, [passive_maps.RandomMap(seed=3)], max_frames=None,
                                     warmup=0)
     assert again['random'].hits == tallies['random'].hits  # seeded
 
@@ -120,7 +120,7 @@ def test_bad_frames_midway_drop_the_sequence(tmp_path):
     path = make_moving_square(tmp_path, 'square')
     (path / 'img' / '005.png').write_bytes(b'broken')
     seq = data.load_sequence(path)
-    result = passive.evaluate([seq], [passive.FrameDiff()], quiet=True, keep_frames=True)
+    result = passive.evaluate([seq], [passive_maps.FrameDiff()], quiet=True, keep_frames=True)
     assert result['skipped'][0][0] == 'square' and '005.png' in result['skipped'][0][1]
     assert result['methods'][0]['frames'] == 0 and result['frames'] == []
 
