@@ -12,6 +12,8 @@ COMMANDS = {
                  'simulated active tracking, mobile base (paper Tables 1 and 3)'),
     'compare': ('activeloc_ros.bench.compare',
                 'selection protocol: is a configuration better than another, or luck'),
+    'decisions': ('activeloc_ros.bench.decisions',
+                  'the verdicts on the defaults: append one from a compare, render the page'),
     'scenes': ('activeloc_ros.bench.scenes', 'generate synthetic static-camera sequences'),
     'graph-check': ('activeloc_ros.bench.graph_check',
                     'does the ROS graph in lockstep move the camera as the benchmark does'),

@@ -218,6 +218,20 @@ def report(sides: list[dict], scores: list[protocol.Scores], *, metric: str,
     return '\n'.join(lines) + '\n', result
 
 
+def provenance(argv: list[str]) -> dict:
+    """The command, date, CPU and commit of a result, for docs/decisions.yaml."""
+    import subprocess
+    from activeloc_ros.bench.perception import cpu_info, describe_cpu
+    try:
+        commit = subprocess.run(['git', 'describe', '--always', '--dirty'], capture_output=True,
+                                text=True, cwd=Path(__file__).parent, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        commit = ''
+    return {'command': shlex.join(['python', '-m', 'activeloc_ros.bench', 'compare', *argv]),
+            'date': time.strftime('%Y-%m-%d'), 'cpu': describe_cpu(cpu_info()),
+            'commit': commit or 'unknown'}
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog='python -m activeloc_ros.bench compare',
@@ -285,7 +299,8 @@ def main(argv: list[str] | None = None) -> int:
         print('\ninterrupted: finished runs are kept in the run cache', file=sys.stderr)
         return 130
     result['settings'] = {**common, 'seeds': args.seeds, 'data': str(args.data or ''),
-                          'seconds': round(time.monotonic() - started, 1)}
+                          'seconds': round(time.monotonic() - started, 1),
+                          **provenance(sys.argv[1:] if argv is None else argv)}
     write_atomic(out / 'compare.json', json.dumps(result, indent=1) + '\n')
     write_atomic(out / 'compare.md', table)
     print(table, end='')

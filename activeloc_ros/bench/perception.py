@@ -128,10 +128,15 @@ def cpu_info() -> dict[str, Any]:
     model = platform.processor() or 'unknown CPU'
     try:
         with open('/proc/cpuinfo') as f:
-            model = next((line.split(':', 1)[1].strip() for line in f
-                          if line.startswith('model name')), model)
+            fields = dict(line.split(':', 1) for line in f.read().split('\n\n')[0].splitlines()
+                          if ':' in line)
     except OSError:
-        pass
+        fields = {}
+    fields = {k.strip(): v.strip() for k, v in fields.items()}
+    if 'model name' in fields:      # the name alone does not tell a Zen 3 from a Zen 4
+        model = fields['model name'] + (f' (family {fields["cpu family"]}, model '
+                                        f'{fields["model"]})' if 'cpu family' in fields
+                                        and 'model' in fields else '')
     return {'model': model, 'cores': os.cpu_count(), 'flags': cpu_flags()}
 
 

@@ -137,7 +137,7 @@ class PerceptionConfig:
         'as a similarity or a homography (exact for a camera turning about its optical '
         'centre), the new frame is compared with the previous one warped into its view, '
         'and the LSTM state and past maps move with it; none = ignored (paper; the '
-        'protocol found similarity no better on the static sequences, docs/verdicts.md)', one_of('none', 'similarity', 'homography'))
+        'protocol found similarity no better on the static sequences, docs/decisions.md)', one_of('none', 'similarity', 'homography'))
     ego_warp: str = _param(
         'features', 'with ego_motion, how the previous frame\'s features reach the new '
         'view: features = they are warped cell by cell (cells the previous view did not '
