@@ -46,7 +46,7 @@ from activeloc_ros.bench.methods import (
     method_pd, PD_OPTIONS, TABLE3_METHODS as MODEL_METHODS, TRACKER_METHODS)
 from activeloc_ros.bench.video import commit_video, discard_videos
 from activeloc_ros.closed_loop import MODES, Pointing, run_episode
-from activeloc_ros.control.base import BaseConfig, BaseController, FORWARD_RULES
+from activeloc_ros.control.base import BASE_DEAD_BAND, BaseConfig, BaseController, FORWARD_RULES
 from activeloc_ros.data import Box
 from activeloc_ros.errors import ActivelocError, ConfigError
 from activeloc_ros.paths import write_atomic
@@ -74,7 +74,7 @@ def base_config(method: str, control: dict) -> BaseConfig:
     if unknown:
         raise ConfigError(f'unknown --control settings {unknown}; known: '
                           f'{", ".join(sorted(known | set(PD_OPTIONS)))}')
-    return BaseConfig(pd=method_pd(method, control),
+    return BaseConfig(pd=method_pd(method, {'dead_band': BASE_DEAD_BAND, **control}),
                       **{k: v for k, v in control.items() if k in known})
 
 

@@ -50,6 +50,8 @@ from activeloc_ros.errors import ConfigError
 
 FORWARD_RULES = ('ground', 'size', 'constant', 'none')
 ACTION_SETS = ('continuous', 'discrete')
+# the base's dead band, its own since the arm's returned to the paper's 0
+BASE_DEAD_BAND = math.radians(2.0)
 
 
 @dataclass(frozen=True)
@@ -101,7 +103,9 @@ class BaseConfig:
     :param distance_gain: forward speed per metre of distance error, 1/s.
     :param max_reverse: top backward speed (m/s) when the target is nearer than
         ``distance``; 0: never back away (AD-VAT's action set has a backward action).
-    :param min_peak: as the arm controller's: a weaker map carries no information.
+    :param min_peak: as the arm controller's: a weaker map carries no information. The
+        base keeps 0.0102 and a 2 deg dead band (`BASE_DEAD_BAND`) where the arm returned
+        to the paper's 0: only the tracking benchmark judges the base's.
     :param discrete_speed: forward speed (m/s) of AD-VAT's moving actions.
     :param discrete_turn_deg_s: turn rate of its turning actions.
     :param avoid: go round obstacles the range scan shows (needs scans: `observe_scan`).
@@ -112,7 +116,7 @@ class BaseConfig:
         round an obstacle (the camera sees 45 deg each side).
     """
 
-    pd: PDConfig = field(default_factory=PDConfig)
+    pd: PDConfig = field(default_factory=lambda: PDConfig(dead_band=BASE_DEAD_BAND))
     step: float = 0.1
     max_speed: float = 2.0
     max_turn_deg_s: float = 90.0

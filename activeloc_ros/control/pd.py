@@ -36,6 +36,8 @@ class PDConfig:
     :param dead_band: while both error components are smaller than this (radians) the
         camera is on target: no new motion (see ``within_dead_band``). It gates the output
         instead of zeroing the error, so the derivative never sees a jump at its edge.
+        0 (the paper's): 2 deg was no better on the static sequences (docs/decisions.md);
+        the tracking base keeps its own (`base.BASE_DEAD_BAND`).
     :param derivative: ``'target'`` (default) differentiates the action's direction (camera
         pose + error), a feed-forward of the action's motion; ``'error'`` differentiates the
         camera-frame error as printed in the paper. The error also changes by the camera's
@@ -49,7 +51,7 @@ class PDConfig:
 
     kp: float = 1.0
     kd: float = 0.0
-    dead_band: float = math.radians(2.0)
+    dead_band: float = 0.0
     derivative: str = 'target'
     derivative_tau: float = 0.0
 

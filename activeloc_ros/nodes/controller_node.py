@@ -24,6 +24,7 @@ limits, confirmation; the base's forward rule) is refused at run time, and named
 warning when set at start, rather than silently ignored.
 """
 import contextlib
+import dataclasses
 import math
 import threading
 
@@ -37,7 +38,8 @@ from sensor_msgs.msg import CameraInfo, JointState, LaserScan
 from activeloc_ros.checks import in_range, non_negative, one_of, positive
 from activeloc_ros.control import (
     ControllerConfig, Intrinsics, PD_VARIANTS, PDConfig, PDController, ReactiveController)
-from activeloc_ros.control.base import ACTION_SETS, BaseConfig, BaseController, FORWARD_RULES
+from activeloc_ros.control.base import (
+    ACTION_SETS, BASE_DEAD_BAND, BaseConfig, BaseController, FORWARD_RULES)
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.pd import DERIVATIVE_MODES
 from activeloc_ros.errors import ConfigError
@@ -67,12 +69,14 @@ PARAMS = (
     Param('derivative_tau', PDConfig.derivative_tau,
           'Low-pass time constant on the derivative, s (0: off)', non_negative),
     Param('dead_band_deg', round(math.degrees(PDConfig.dead_band), 9),
-          'Errors below this (per axis, degrees) are ignored', in_range(0.0, 30.0)),
+          'The arm\'s: errors below this (per axis, degrees) are ignored (0: the paper; a '
+          'base keeps its own 2)', in_range(0.0, 30.0)),
     Param('watchdog_timeout', ControllerConfig.watchdog_timeout,
           'No action location for this long (s): hold still', positive),
     Param('min_peak', ControllerConfig.min_peak,
-          'Ignore action locations whose surprise peak (z) is below this: no information '
-          '(a uniform 14x14 map peaks at 1/196 = 0.0051)'),
+          'The arm\'s: ignore action locations whose surprise peak (z) is below this: no '
+          'information (a uniform 14x14 map peaks at 1/196 = 0.0051; 0: the paper; a base '
+          'keeps its own 0.0102)'),
     Param('settle_time', ControllerConfig.settle_time,
           'Ignore action locations from frames captured while the camera moved or less than '
           'this long after it stopped, s (0: never, the paper)', in_range(0.0, 5.0)),
@@ -142,7 +146,7 @@ BASE_PARAMS = ('forward', 'distance', 'distance_gain', 'pace', 'max_speed', 'max
 # the settings only the arm's controller reads (its joint mapping and servo speed are
 # read-only besides)
 ARM_PARAMS = ('settle_time', 'confirm_deg', 'pan_limit_deg', 'tilt_limit_deg', 'step_delay_ms',
-              *(p.name for p in MAPPING_PARAMS))
+              'dead_band_deg', 'min_peak', *(p.name for p in MAPPING_PARAMS))
 
 
 def unread(actuator: str) -> tuple[str, ...]:
@@ -158,9 +162,11 @@ def unread_reason(actuator: str, count: int = 1) -> str:
 
 def base_config_from(values: dict) -> BaseConfig:
     """The base controller's config from validated parameter values (raises ConfigError):
-    the PD, watchdog and information rule the arm's would have, and the base's own."""
+    the PD gains and watchdog the arm's would have, its own dead band and information rule
+    (those parameters are the arm's), and the base's own settings."""
     arm = config_from(values)
-    return BaseConfig(pd=arm.pd, watchdog_timeout=arm.watchdog_timeout, min_peak=arm.min_peak,
+    return BaseConfig(pd=dataclasses.replace(arm.pd, dead_band=BASE_DEAD_BAND),
+                      watchdog_timeout=arm.watchdog_timeout,
                       **{name: values[name] for name in BASE_PARAMS})
 
 

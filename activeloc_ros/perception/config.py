@@ -198,19 +198,21 @@ class PerceptionConfig:
         'both', 'with update_encoder, the encoder gradient flows through both the '
         'predictor\'s input and the target (exact; re-encodes the previous frame) or through '
         'the target only (half the encoder cost)', one_of('both', 'target'))
-    optimizer: str = _param('adam', 'online optimiser', one_of('adam', 'sgd'))
+    optimizer: str = _param(
+        'sgd', 'online optimiser (paper: sgd; adam with lr 1e-3 was no better on the static '
+        'sequences, docs/decisions.md)', one_of('adam', 'sgd'))
     lr: float = _param(
-        1e-3, 'base learning rate (paper 1e-6, which moves nothing within thousands of '
-        'frames here)', at_least(0.0))
+        1e-6, 'base learning rate (paper: 1e-6, which moves the predictor little within a '
+        'sequence; with adam, 1e-3)', at_least(0.0))
     encoder_lr_scale: float = _param(
         1.0, 'encoder learning rate = lr * this (paper: 1)', at_least(0.0))
     momentum: float = _param(0.0, 'SGD momentum', at_least(0.0))
     grad_clip: float = _param(
         0.0, 'clip the global gradient norm to this; 0 = off', at_least(0.0))
     adaptive_lr: bool = _param(
-        False, 'adaptive learning (Aakur & Sarkar CVPR\'19, paper: on): a loss much above '
-        'the recent mean gets a boosted learning rate for that step; off by default: with '
-        'Adam the 100x steps undo what was learnt')
+        True, 'adaptive learning (Aakur & Sarkar CVPR\'19, paper: on): a loss much above '
+        'the recent mean gets a boosted learning rate for that step (turn it off with adam: '
+        'its 100x steps undo what was learnt)')
     adaptive_window: int = _param(30, 'losses in the running mean', at_least(1))
     adaptive_ratio: float = _param(
         1.5, 'boost when loss / mean of the window exceeds this', above(0.0))

@@ -37,7 +37,7 @@ features, each frame divided by its RMS under the default `feature_norm='frame_r
                the same under both reductions)
     total    = L_global + attn_weight * L_attn
 Defaults that differ from the paper, each measured (see the field helps): feature_norm,
-attn_rescale, Adam at 1e-3 instead of 1e-6, adaptive boost off, encoder frozen, the
+attn_rescale, encoder frozen, the
 motion weight 2*sigmoid(|d|)-1 (the literal sigmoid(d) is 0.5 where nothing moves),
 conv_padding (below) and vgg19 for the paper's vgg16
 (whose weights no registry here holds), run in int8 (`encoder_precision`), with the
