@@ -1,5 +1,5 @@
-"""docs/decisions: the verdicts kept as data, a row made from a compare result, the page
-rendered from the data and never stale."""
+"""The generated docs: the verdicts kept as data (a row made from a compare result, the page
+rendered from the data) and the parameters page made from the declarations, never stale."""
 import json
 
 import pytest
@@ -59,3 +59,9 @@ def test_a_row_whose_verdict_contradicts_its_interval_is_refused(tmp_path):
     data.write_text(yaml.safe_dump({'rows': [row]}))
     with pytest.raises(ConfigError, match='row 1'):
         decisions.load(data)
+
+
+def test_the_parameters_page_is_made_from_the_declarations():
+    """docs/parameters.md lists every node's declared parameters as they are now."""
+    from activeloc_ros.nodes import params_doc
+    assert params_doc.main(['--check']) == 0, 'run python -m activeloc_ros.nodes.params_doc'
