@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 from activeloc_ros.errors import ConfigError, FrameError, WeightsError
-from activeloc_ros.perception import model as M, predictor as P
+from activeloc_ros.perception import checkpoint, model as M, predictor as P
 from activeloc_ros.perception.config import PerceptionConfig
 from activeloc_ros.perception.features import fast_bfloat16
 from activeloc_ros.perception.model import SurpriseModel
@@ -462,9 +462,9 @@ def test_checkpoint_resumes_learning_exactly(tmp_path, kw):
     for f, t in zip(frames[:5], times):
         model.step(f, t=t)
     path = str(tmp_path / 'perception.pt')
-    model.save(path)
+    checkpoint.save(model, path)
     expected = [model.step(f, t=t) for f, t in zip(frames[5:], times[5:])]
-    loaded = SurpriseModel.load(path)
+    loaded = checkpoint.load(path)
     assert loaded.cfg == model.cfg
     got = [loaded.step(f, t=t) for f, t in zip(frames[5:], times[5:])]
     for a, b in zip(expected, got):
@@ -475,12 +475,12 @@ def test_checkpoint_resumes_learning_exactly(tmp_path, kw):
 
 def test_a_checkpoint_from_before_encoder_pad_and_motion_period_loads_as_it_learned(tmp_path):
     path = tmp_path / 'old.pt'
-    make(real=True).save(str(path))
+    checkpoint.save(make(real=True), str(path))
     ckpt = torch.load(path, weights_only=True)
     del ckpt['config']['encoder_pad'], ckpt['config']['motion_period']
     del ckpt['running']['t_prev']
     torch.save(ckpt, path)
-    cfg = SurpriseModel.load(str(path)).cfg
+    cfg = checkpoint.load(str(path)).cfg
     assert cfg.encoder_pad == 0 and cfg.motion_period == 0.0   # no border, one scale
 
 
@@ -492,7 +492,7 @@ def test_a_missing_or_corrupt_checkpoint_is_a_weights_error_naming_it(tmp_path, 
     elif content is not None:
         path.write_bytes(content)
     with pytest.raises(WeightsError, match='cannot load the checkpoint .*model.pt'):
-        SurpriseModel.load(str(path))
+        checkpoint.load(str(path))
 
 
 # -- non-finite values -----------------------------------------------------------------------

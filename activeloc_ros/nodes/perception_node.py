@@ -115,7 +115,8 @@ class PerceptionNode(Node):
         if pipelined and not config['num_threads']:     # one core for each half
             config['num_threads'] = max(1, (os.cpu_count() or 2) // 2)
         if self.params['checkpoint']:
-            self.model = SurpriseModel.load(self.params['checkpoint'])
+            from activeloc_ros.perception import checkpoint
+            self.model = checkpoint.load(self.params['checkpoint'])
         else:
             self.model = SurpriseModel(PerceptionConfig.from_dict(config))
         self.stats_lock = threading.Lock()     # the learning thread publishes the maps

@@ -17,7 +17,8 @@ import torch.nn.functional as F
 
 from activeloc_ros.errors import ConfigError, FrameError, WeightsError
 from activeloc_ros.perception.config import PerceptionConfig
-from activeloc_ros.perception.encoders import build_encoder, fold_batchnorm, set_conv_padding
+from activeloc_ros.perception.encoder_weights import build_encoder
+from activeloc_ros.perception.encoders import fold_batchnorm, set_conv_padding
 
 
 # torch's probes of the instruction sets that decide the encoder's speed (private in 2.13)

@@ -9,9 +9,9 @@ frame that then arrives, softmaxed over the cells, is the surprise map; its argm
 action's location. One optimiser step per frame on L_global + L_attn keeps the model adapting.
 
 This module is the online learner: `SurpriseModel` (one frame a step, the optimiser, the
-rollback of non-finite updates, checkpoints). Its parts live beside it: the configuration
+rollback of non-finite updates). Its parts live beside it: the configuration
 (`perception.config`), the encoder and its arithmetic (`perception.features`), the
-predictor and the losses (`perception.predictor`).
+predictor and the losses (`perception.predictor`), checkpoints (`perception.checkpoint`).
 
 Which computation happens when (one frame per `step`, t the new frame):
     the prediction of f_t is made from f_{t-1} with the state after t-2 and the current
@@ -36,34 +36,12 @@ features, each frame divided by its RMS under the default `feature_norm='frame_r
                surprise map of the frame before; L2 norms over all cells and channels,
                the same under both reductions)
     total    = L_global + attn_weight * L_attn
-Defaults that differ from the paper, each measured (see the field helps): feature_norm,
-attn_rescale, encoder frozen, the
-motion weight 2*sigmoid(|d|)-1 (the literal sigmoid(d) is 0.5 where nothing moves),
-conv_padding (below) and vgg19 for the paper's vgg16
-(whose weights no registry here holds), run in int8 (`encoder_precision`), with the
-predictor's products in bfloat16 where the CPU computes it natively.
+Defaults that differ from the paper, and the verdicts that keep them: docs/decisions.md.
 
 `step` is `learn(observe(frame))`: `observe` encodes (and measures the camera's motion) with
 its own memory of the previous frame, `learn` does the rest with the sequence's, so the two
 may run on consecutive frames at once (`perception.pipeline`). `learn` hands the map out
 before the optimiser step, which the map does not need.
-
-encoder_pad: under camera motion the map's peak went to the grid's outer ring, the cells
-whose receptive fields reach into the convolutions' zero padding. Measured with `bench
-passive --camera static --max-frames 100 --pan 10` (a camera panning over still scenes; any
-peak off the actors is wrong), over the 5 static dev sequences, encoder_pad 0 / 16 / 32:
-peaks on the outer ring 47.1 / 38.1 / 25.8% (a random cell: 26.5%), hits on frames after a
-camera move 46.6 / 54.9 / 62.1%, all frames 55.8 / 63.9 / 70.4%. The ring share falls on
-every sequence (kitti 65 -> 32%, tud 52 -> 35, crossing 31 -> 18, walking2 75 -> 35, ball1
-13 -> 8). Closed loop (`bench screen --camera static`, seeds 0-2): 11.12 / 10.06 / 10.25 deg
-mean AAE. 32 px costs the encoder 1.65x the work of none (288 px input instead of 224).
-
-conv_padding: reflect pads every convolution's input with mirrored picture, so no cell sees
-zeros at all, at no extra work; it replaced encoder_pad 32 as the default to keep up with a
-30 frames/s camera. Same pan measurement, encoder_pad 32 with zeros against 0 with reflect:
-peaks on the outer ring 24.5 -> 3.2%, hits 70.4 -> 77.1% (kitti 81.8 -> 90.9, tud 90.9 ->
-94.9, crossing 67.0 -> 75.3, walking2 70.7 -> 84.8, ball1 41.4 -> 39.4). Closed loop, seeds
-0-4: lockstep 9.01 -> 9.05 deg, real time 9.59 -> 9.60 (README, Weights).
 """
 import collections
 import dataclasses
@@ -77,7 +55,6 @@ import numpy as np
 import torch
 from torch import nn
 
-from activeloc_ros.errors import WeightsError
 from activeloc_ros.perception import egomotion, motion
 from activeloc_ros.perception.config import PerceptionConfig
 from activeloc_ros.perception.features import Features, resolve_precision
@@ -486,64 +463,6 @@ class SurpriseModel:
             losses=losses or dict(_NO_LOSSES),
             lr=lr, updated=losses is not None, timings=timings,
             nan_events=self.nan_events, frame_index=index)
-
-    # -- checkpoints -------------------------------------------------------------------------
-    def save(self, path: str) -> None:
-        """Config, weights, optimiser and the running state, so `load` resumes learning."""
-        torch.save({
-            'config': self.cfg.to_dict(),
-            'encoder': self.encoder.state_dict(),
-            'predictor': self.predictor.state_dict(),
-            'optimizer': self.optimizer.state_dict(),
-            'running': {
-                'state': self.state, 'x_prev': self.x_prev, 'f_prev': self.f_prev,
-                'map_prev': self.map_prev, 'map_prev2': self.map_prev2,
-                'loss_window': list(self.loss_window), 'nan_events': self.nan_events,
-                'frame_index': self.frame_index, 'updates': self.updates,
-                'grey_prev': (None if self.grey_prev is None
-                              else torch.from_numpy(self.grey_prev)),
-                't_prev': self.t_prev,
-            },
-        }, path)
-
-    @classmethod
-    def load(cls, path: str) -> 'SurpriseModel':
-        """Rebuild a saved model; it continues learning where `save` left it. Raises
-        WeightsError for a file that is missing or not such a checkpoint."""
-        try:
-            return cls._load(path)
-        except Exception as exc:   # torch's unpickler meets a file of junk with any error
-            raise WeightsError(f'cannot load the checkpoint {path}: '
-                               f'{type(exc).__name__}: {exc}') from None
-
-    @classmethod
-    def _load(cls, path: str) -> 'SurpriseModel':
-        from activeloc_ros.perception.encoders import build_encoder
-        ckpt = torch.load(path, map_location='cpu', weights_only=True)
-        # a checkpoint saved before encoder_pad (motion_period) existed was learned without
-        # the border (with one motion scale at any frame rate)
-        cfg = PerceptionConfig.from_dict({'encoder_pad': 0, 'motion_period': 0.0,
-                                          **ckpt['config']})
-        # the checkpoint holds the encoder weights: no weight cache needed
-        encoder = build_encoder(cfg.encoder, pretrained=False, classifier=False)
-        encoder.load_state_dict(ckpt['encoder'])
-        model = cls(cfg, encoder=encoder)
-        model.predictor.load_state_dict(ckpt['predictor'])
-        model.optimizer.load_state_dict(ckpt['optimizer'])
-        run = ckpt['running']
-        model.state = tuple(run['state']) if run['state'] is not None else None
-        model.x_prev, model.f_prev = run['x_prev'], run['f_prev']
-        if model.x_prev is not None and cfg.channels_last:
-            model.x_prev = model.x_prev.contiguous(memory_format=torch.channels_last)
-        model.map_prev, model.map_prev2 = run['map_prev'], run['map_prev2']
-        model.loss_window.extend(run['loss_window'])
-        model.nan_events, model.frame_index = run['nan_events'], run['frame_index']
-        model.updates = run['updates']
-        grey_prev = run.get('grey_prev')
-        model.grey_prev = None if grey_prev is None else grey_prev.numpy()
-        model.t_prev = run.get('t_prev')
-        model._take_snapshot()
-        return model
 
 
 def _make_optimizer(cfg: PerceptionConfig, groups: list[dict]) -> torch.optim.Optimizer:

@@ -43,7 +43,7 @@ import torch
 
 from activeloc_ros.errors import ActivelocError, ConfigError, WeightsError
 from activeloc_ros.paths import file_sha256
-from activeloc_ros.perception import encoders
+from activeloc_ros.perception import encoder_weights, encoders
 from activeloc_ros.perception.cache import (
     CACHE_ENV, cache_dir, FETCHABLE, file_name, is_current, read_state_dict, Source, SOURCES,
     state_digest)
@@ -298,7 +298,7 @@ def fetch(names: Sequence[str] | None = None, *, cache: str | Path | None = None
                                    f'{source.archive_sha256}; refusing to use it')
             print(f'{step}: archive sha256 ok; converting ...', file=out, flush=True)
             state = CONVERTERS[name](archive)
-        encoders.check_layout(name, state, source=source.spec)
+        encoder_weights.check_layout(name, state, source=source.spec)
         digest = state_digest(state)
         if digest != source.state_sha256:
             raise WeightsError(f'{name}: the converted weights have digest {digest}, '
