@@ -10,7 +10,7 @@ import time
 import numpy as np
 
 from activeloc_ros.checks import argument, non_negative
-from activeloc_ros.nodes.recorder import message_class
+from activeloc_ros.nodes.messages import message_class
 
 
 def format_message(msg) -> str:

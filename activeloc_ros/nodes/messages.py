@@ -8,6 +8,7 @@ of its two corners. Range scans: a `control.base.Scan` as a `sensor_msgs/LaserSc
 117: +inf where nothing lies within range). Reading needs no ROS; the message types are
 imported only to build messages.
 """
+import importlib
 import math
 from typing import Sequence
 
@@ -116,3 +117,9 @@ def scan_from(msg, t: float) -> Scan:
     valid = (ranges >= msg.range_min) & (ranges <= msg.range_max)   # NaN: no return either
     return Scan(msg.angle_min + msg.angle_increment * np.arange(n),
                 np.where(valid, ranges, np.inf), t)
+
+
+def message_class(msgtype: str):
+    """The Python class of a message type named ``package/msg/Name``."""
+    package, kind, name = msgtype.split('/')
+    return getattr(importlib.import_module(f'{package}.{kind}'), name)

@@ -11,7 +11,6 @@ best effort, which a reliable subscription would not hear. A write error (a full
 ends the recording, not the graph: the bag is closed at its last complete chunk, `error`
 says what happened and bringup stops the run with that reason.
 """
-import importlib
 from pathlib import Path
 import threading
 
@@ -20,15 +19,11 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosbags.typesys import TypesysError
 
 from activeloc_ros.bag.write import BagWriter, RecordingError
+from activeloc_ros.nodes.messages import message_class
 from activeloc_ros.nodes.qos import offered_reliability
 
 IGNORED = ('/rosout', '/parameter_events')
 QUEUE_DEPTH = 100       # messages a subscription holds while the writer is busy
-
-
-def message_class(msgtype: str):
-    package, kind, name = msgtype.split('/')
-    return getattr(importlib.import_module(f'{package}.{kind}'), name)
 
 
 def in_namespace(topic: str, namespace: str) -> bool:
