@@ -1,4 +1,5 @@
-"""Pure value checks for configuration: each returns an error message, or None when valid.
+"""Pure value checks for configuration: each returns an error message, or None when valid;
+and `Param`, a parameter's name, default, description and check, as every node declares it.
 
 ROS-free, so the model's config and the nodes' ROS parameters share them. A closed interval
 is a ``Range``, which ``nodes.params`` also writes into the parameter's descriptor (so
@@ -8,7 +9,7 @@ from dataclasses import dataclass, fields
 import math
 import numbers
 import os
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 Check = Callable[[Any], 'str | None']
 
@@ -117,3 +118,25 @@ def field_types(config) -> 'str | None':
         if kind == 'str' and not isinstance(value, str):
             return f'{f.name} must be a string, got {value!r}'
     return None
+
+
+@dataclass(frozen=True)
+class Param:
+    name: str
+    default: Any
+    description: str
+    check: Check | None = None
+    read_only: bool = False
+
+
+def validate(params: Sequence[Param], values: dict[str, Any]) -> list[str]:
+    """Return one message per invalid value, naming the parameter."""
+    by_name = {p.name: p for p in params}
+    errors = []
+    for name, value in values.items():
+        spec = by_name.get(name)
+        if spec is not None and spec.check is not None:
+            problem = spec.check(value)
+            if problem:
+                errors.append(f'parameter {name!r} {problem}')
+    return errors

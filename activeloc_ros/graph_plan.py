@@ -95,7 +95,7 @@ def own_ros_args(args) -> list[str] | None:
 
 def camera_screen(files=()):
     """The virtual screen a `virtual:` camera renders, from the sim node's `node_values`."""
-    from activeloc_ros.nodes.settings import screen_from
+    from activeloc_ros.settings import screen_from
     from activeloc_ros.screen import VirtualScreen
     return VirtualScreen(screen_from(node_values('sim', files)))
 

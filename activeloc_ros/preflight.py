@@ -89,7 +89,7 @@ def writable_folder(path: Path, option: str) -> None:
 def check_node_params(args) -> None:
     """Check every node's parameters, from its files and bringup's options, as the node
     checks them at start, so that a bad value stops the run before any node starts."""
-    from activeloc_ros.nodes.params import validate
+    from activeloc_ros.checks import validate
     from activeloc_ros.nodes.params_files import files_problems, unknown_cli_params
     # each -p setting goes to the nodes that declare it (`for_node`): one that none of
     # them declares (a typo) would change nothing, silently
@@ -111,7 +111,7 @@ def node_problems(node: str, values: dict) -> list[str]:
     """The checks across parameters that a node makes at start."""
     try:
         if node == 'controller':
-            from activeloc_ros.nodes.controller_node import config_from
+            from activeloc_ros.control.params import config_from
             config_from(values)
         elif node == 'perception':
             from activeloc_ros.perception.config import PerceptionConfig

@@ -19,13 +19,8 @@ NODE_MODULE = re.compile(r'activeloc_ros\.nodes\.(\w+_node|recorder|\{\w+\}_node
 
 # (importing module, node module) pairs still to move to ROS-free modules (issue 64)
 STILL_IMPORTED = {
-    ('bench/graph_check.py', 'activeloc_ros.nodes.controller_node'),
-    ('bench/methods.py', 'activeloc_ros.nodes.controller_node'),
-    ('bench/methods.py', 'activeloc_ros.nodes.perception_node'),
-    ('bench/perception.py', 'activeloc_ros.nodes.perception_node'),
     ('bringup.py', 'activeloc_ros.nodes.recorder'),
     ('graph_plan.py', 'activeloc_ros.nodes.{node}_node'),
-    ('preflight.py', 'activeloc_ros.nodes.controller_node'),
 }
 
 

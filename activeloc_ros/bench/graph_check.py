@@ -28,7 +28,7 @@ from activeloc_ros.sources import default_bag, open_scene
 
 def bench_poses(scene: str, frames: int) -> list[tuple[float, float, float]]:
     """(t, pan, tilt) per frame of the benchmark's closed loop on the scene."""
-    from activeloc_ros.nodes.controller_node import config_from
+    from activeloc_ros.control.params import config_from
     from activeloc_ros.perception.config import PerceptionConfig
     source = open_scene(scene)
     fps = source.fps

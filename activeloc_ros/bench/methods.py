@@ -135,12 +135,14 @@ def params_file(path: str | Path) -> tuple[dict, dict]:
 
 @functools.lru_cache(maxsize=16)     # each run of a preset asks again
 def _params_file(path: str, mtime_ns: int) -> tuple[dict, dict]:
-    from activeloc_ros.nodes import controller_node, perception_node
-    from activeloc_ros.nodes.params import validate
+    from activeloc_ros.checks import validate
+    from activeloc_ros.control import params as controller_params
     from activeloc_ros.nodes.params_files import file_values, files_problems
+    from activeloc_ros.perception import params as perception_params
     from activeloc_ros.perception.config import PerceptionConfig
     values, problems = {}, []
-    for node, module in (('perception', perception_node), ('controller', controller_node)):
+    for node, module in (('perception', perception_params),
+                         ('controller', controller_params)):
         problems += files_problems(node, module.PARAMS, [path])
         values[node] = file_values(node, [path])
         problems += [f'{path}: {p}' for p in validate(module.PARAMS, values[node])]

@@ -170,7 +170,7 @@ def matmul_peak_gflops(dtype_name: str, *, n: int = 2048, seconds: float = 1.0) 
 
 def params_file_settings(path: str) -> dict[str, Any]:
     """The PerceptionConfig fields a ROS 2 params file sets for the perception node."""
-    from activeloc_ros.nodes.perception_node import PARAMS
+    from activeloc_ros.perception.params import PARAMS
     from activeloc_ros.nodes.params_files import file_values, files_problems
     from activeloc_ros.perception.config import PerceptionConfig
     if not Path(path).is_file():

@@ -26,7 +26,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
-from activeloc_ros.checks import in_range, non_negative, one_of, positive
+from activeloc_ros.checks import in_range, non_negative, one_of, Param, positive
 from activeloc_ros.control import (
     clamp_to_limits, fixed_moves, HOME_DEG, JOINT_NAMES, pose_problem, SimArm)
 from activeloc_ros.control.braccio import (
@@ -35,9 +35,9 @@ from activeloc_ros.control.serial_link import BraccioLink
 from activeloc_ros.nodes.clock import Rewinds
 from activeloc_ros.nodes.masters import PublisherWatch
 from activeloc_ros.nodes.messages import joint_state
-from activeloc_ros.nodes.params import declare, node_help, Param
+from activeloc_ros.nodes.params import declare, node_help
 from activeloc_ros.nodes.process import run
-from activeloc_ros.nodes.settings import MAPPING_PARAMS
+from activeloc_ros.settings import MAPPING_PARAMS
 
 
 # Set at run time, a parameter applies at once, except those that fix the hardware or the

@@ -14,10 +14,10 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 
-from activeloc_ros.checks import field_of_view, in_range, non_negative, one_of, positive
+from activeloc_ros.checks import field_of_view, in_range, non_negative, one_of, Param, positive
 from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.nodes.messages import camera_info, time_from_s
-from activeloc_ros.nodes.params import declare, node_help, Param
+from activeloc_ros.nodes.params import declare, node_help
 from activeloc_ros.nodes.process import frame_due, run
 from activeloc_ros.sources import default_bag, open_source, Pacer, pinhole_matrix, Playback
 

@@ -10,7 +10,6 @@ At run time a parameter either applies at once (the node passes ``on_change``; a
 check ``check_all`` may refuse a combination) or is declared read-only, so that
 ``ros2 param set`` is refused rather than reported as set and never used.
 """
-from dataclasses import dataclass
 import math
 import sys
 import textwrap
@@ -20,34 +19,12 @@ from rcl_interfaces.msg import (
     FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult)
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 
-from activeloc_ros.checks import Check, Range
+from activeloc_ros.checks import Param, Range, validate
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.nodes.params_files import (check_params_files, params_files,
                                               unknown_cli_params)
 
 _INT64 = (-2**63, 2**63 - 1)
-
-
-@dataclass(frozen=True)
-class Param:
-    name: str
-    default: Any
-    description: str
-    check: Check | None = None
-    read_only: bool = False
-
-
-def validate(params: Sequence[Param], values: dict[str, Any]) -> list[str]:
-    """Return one message per invalid value, naming the parameter."""
-    by_name = {p.name: p for p in params}
-    errors = []
-    for name, value in values.items():
-        spec = by_name.get(name)
-        if spec is not None and spec.check is not None:
-            problem = spec.check(value)
-            if problem:
-                errors.append(f'parameter {name!r} {problem}')
-    return errors
 
 
 def descriptor(spec: Param) -> ParameterDescriptor:

@@ -10,16 +10,15 @@ import difflib
 import functools
 from pathlib import Path
 import re
-from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 from rclpy.parameter import Parameter
 import yaml
 
+from activeloc_ros.checks import Param
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.paths import NODE_NAMES   # a params file section names one, or /**
 
-if TYPE_CHECKING:
-    from activeloc_ros.nodes.params import Param
 
 
 class _RclLoader(yaml.SafeLoader):
@@ -183,7 +182,7 @@ BUILTIN_PARAMS = {'use_sim_time': Parameter.Type.BOOL,
                   'start_type_description_service': Parameter.Type.BOOL}
 
 
-def files_problems(node_name: str, params: Sequence['Param'], files: Iterable[str]) -> list[str]:
+def files_problems(node_name: str, params: Sequence[Param], files: Iterable[str]) -> list[str]:
     """Every problem of the params `files` for the node `node_name` declaring `params`
     (see ``params_file_problems``), each naming its file."""
     declared = {**BUILTIN_PARAMS, **{p.name: _declared_type(p.default) for p in params}}
@@ -209,7 +208,7 @@ def file_values(node_name: str, files: Iterable[str]) -> dict[str, Any]:
     return values
 
 
-def check_params_files(node, params: Sequence['Param'], files: Iterable[str]) -> None:
+def check_params_files(node, params: Sequence[Param], files: Iterable[str]) -> None:
     """Raise ConfigError listing every problem of `files` for `node` (``files_problems``)."""
     problems = files_problems(node.get_name(), params, files)
     if problems:

@@ -18,7 +18,6 @@ give the camera's period), and the model skips their optimiser step (`skip_late_
 
     ros2 run activeloc_ros perception_node --ros-args --params-file params/perception.yaml
 """
-import dataclasses
 import math
 import os
 import threading
@@ -34,16 +33,16 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Float32MultiArray, Header, MultiArrayDimension
 
 from activeloc_ros import metrics
-from activeloc_ros.checks import file_or_empty, in_range, one_of, positive
 from activeloc_ros.errors import FrameError
 from activeloc_ros.images import (decode_compressed, float_image_fields, image_to_rgb, overlay,
                                   rgb_to_image_fields)
 from activeloc_ros.nodes.health import PipelineStats
 from activeloc_ros.nodes.messages import region_message, stamp_s
 from activeloc_ros.nodes.qos import offered_reliability
-from activeloc_ros.nodes.params import declare, node_help, Param
+from activeloc_ros.nodes.params import declare, node_help
 from activeloc_ros.nodes.process import run
 from activeloc_ros.perception.config import PerceptionConfig
+from activeloc_ros.perception.params import MODEL_PARAMS, NODE_PARAMS, PARAMS
 from activeloc_ros.perception.model import PerceptionResult, SurpriseModel
 from activeloc_ros.perception.pipeline import Pipeline
 
@@ -51,48 +50,6 @@ RELIABILITY = {'best_effort': ReliabilityPolicy.BEST_EFFORT,
                'reliable': ReliabilityPolicy.RELIABLE}
 QOS_CHECK_PERIOD_S = 1.0     # image_reliability auto: how often the publishers are looked at
 MAX_CAPTURE_AGE_S = 1.0      # a frame stamped longer ago: its stamp is no capture time
-
-# Parameters without read_only take effect at the next frame.
-NODE_PARAMS = [
-    Param('publish_overlay', True, 'publish surprise_map/overlay (costs a few ms per frame)'),
-    Param('overlay_alpha', 0.45, 'weight of the heat map in the overlay', in_range(0.0, 1.0)),
-    Param('max_image_pixels', 3840 * 2160, 'frames of more pixels (width x height) are '
-          'skipped with a warning (default: 3840x2160, 4K UHD)', positive),
-    Param('image_transport', 'raw', 'raw: sensor_msgs/Image on camera/image_raw; compressed: '
-          'sensor_msgs/CompressedImage (jpeg, png) on camera/image_raw/compressed',
-          one_of('raw', 'compressed'), read_only=True),
-    Param('image_reliability', 'auto', 'QoS reliability of the image subscription: auto '
-          'follows the publishers (best effort if one offers only that, else reliable); '
-          'best_effort hears every camera but loses large frames over DDS; reliable hears '
-          'reliable cameras only', one_of('auto', *RELIABILITY), read_only=True),
-    Param('diagnostics_period', 1.0, 'seconds between two /diagnostics messages', positive,
-          read_only=True),
-    Param('checkpoint', '', 'model checkpoint to start from (empty: fresh model)',
-          file_or_empty, read_only=True),
-    Param('pipeline', False, 'encode the next frame while learning from this one '
-          '(perception.pipeline: the same maps; torch and the encoder get half the cores each '
-          'unless num_threads is set). More maps/s from a camera faster than the model, '
-          'but later ones (README, Weights). Not used when the encoder learns '
-          '(update_encoder)',
-          read_only=True),
-]
-
-
-def model_params() -> list[Param]:
-    """One ROS parameter per PerceptionConfig field, validated by the config's own check."""
-    params = []
-    for field in dataclasses.fields(PerceptionConfig):
-        def check(value, name=field.name):
-            return PerceptionConfig.check(name, value)
-
-        params.append(Param(field.name, field.default, field.metadata.get('help', field.name),
-                            check, read_only=True))
-    return params
-
-
-MODEL_PARAMS = model_params()
-PARAMS = MODEL_PARAMS + NODE_PARAMS      # all the node declares
-
 
 def map_message(surprise_map) -> Float32MultiArray:
     rows, cols = surprise_map.shape

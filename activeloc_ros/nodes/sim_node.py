@@ -24,7 +24,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import CameraInfo, Image, JointState
 
-from activeloc_ros.checks import in_range, non_negative, one_of, positive
+from activeloc_ros.checks import in_range, non_negative, one_of, Param, positive
 from activeloc_ros.control.braccio import (
     clamp_text, clamp_to_limits, refusal_text, STEP_DELAY_MS_RANGE)
 from activeloc_ros.data import FrameTruth
@@ -34,9 +34,9 @@ from activeloc_ros.nodes.lockstep import Lockstep, moot_in_lockstep, time_ns
 from activeloc_ros.nodes.masters import PublisherWatch
 from activeloc_ros.nodes.messages import (
     arm_joints_deg, camera_info, joint_state, stamp_ns, time_from_ns)
-from activeloc_ros.nodes.params import declare, node_help, Param
+from activeloc_ros.nodes.params import declare, node_help
 from activeloc_ros.nodes.process import frame_due, run
-from activeloc_ros.nodes.settings import MAPPING_PARAMS, mapping_from, SCREEN_PARAMS, screen_from
+from activeloc_ros.settings import MAPPING_PARAMS, mapping_from, SCREEN_PARAMS, screen_from
 from activeloc_ros.screen import VirtualScreen
 from activeloc_ros.sources import (
     default_bag, DEFAULT_SCENE_FPS, open_scene, Pacer, Playback, SCENE_HELP)

@@ -31,14 +31,14 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import CameraInfo, Image, LaserScan
 from std_msgs.msg import Header
 
-from activeloc_ros.checks import in_range, non_negative, one_of, positive
+from activeloc_ros.checks import in_range, non_negative, one_of, Param, positive
 from activeloc_ros.control.base import Twist as BaseTwist
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.nodes.lockstep import ANSWER, Lockstep, moot_in_lockstep
 from activeloc_ros.nodes.masters import PublisherWatch
 from activeloc_ros.nodes.messages import camera_info, scan_message, stamp_ns, time_from_ns
-from activeloc_ros.nodes.params import declare, node_help, Param
+from activeloc_ros.nodes.params import declare, node_help
 from activeloc_ros.nodes.process import frame_due, run
 from activeloc_ros.tracking.scenes import SCENES
 from activeloc_ros.tracking.world import TARGETS, TrackingConfig, TrackingWorld

@@ -6,10 +6,9 @@ which steers through it, and by the sim node, whose camera renders what the arm 
 The virtual screen is declared by the sim node; bringup and graph-check build the same
 screen from its parameter values, without the node.
 """
-from activeloc_ros.checks import one_of
+from activeloc_ros.checks import one_of, Param
 from activeloc_ros.control import ArmMapping, HOME_DEG, JOINT_NAMES, pose_problem
 from activeloc_ros.errors import ConfigError
-from activeloc_ros.nodes.params import Param
 from activeloc_ros.screen import ScreenConfig
 
 
