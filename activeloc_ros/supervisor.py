@@ -7,6 +7,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 
 from activeloc_ros.graph_plan import node_arguments, node_values
 
@@ -35,6 +36,31 @@ def stop_deadline(node: str, args) -> float:
     return max(STOP_DEADLINE_S, float(values['stop_timeout']) + 2.0)
 
 
+HANDLER_DEADLINE_S = 5.0       # how long a starting node may take to handle a stop
+
+
+def handles_stops(process: subprocess.Popen, deadline: float) -> bool:
+    """Wait until `process` handles stops itself, it ends, or `deadline` seconds pass;
+    whether it handles them. Python catches SIGINT from its first moment, raising
+    KeyboardInterrupt wherever it is, so the sign is SIGTERM, which a node's stop handling
+    (`nodes.start`, then `process.run`) catches with it (Linux: /proc lists it as caught).
+    Where /proc cannot say, it is taken to."""
+    give_up = time.monotonic() + deadline
+    while process.poll() is None:
+        try:
+            status = Path(f'/proc/{process.pid}/status').read_text()
+        except OSError:
+            return True
+        caught = next((line.split()[1] for line in status.splitlines()
+                       if line.startswith('SigCgt:')), None)
+        if caught is None or int(caught, 16) & (1 << (signal.SIGTERM - 1)):
+            return True
+        if time.monotonic() > give_up:
+            return False
+        time.sleep(0.01)
+    return False
+
+
 class Child:
     """One node process, in a session of its own (a terminal's Ctrl-C reaches bringup only,
     which stops the nodes in order) that ends when bringup ends, however it ends."""
@@ -56,7 +82,10 @@ class Child:
         return self.process.poll()
 
     def stop(self) -> int:
-        """SIGINT (the node stops on purpose), then SIGTERM, then SIGKILL, each with a deadline."""
+        """SIGINT (the node stops on purpose), then SIGTERM, then SIGKILL, each with a deadline.
+        A process still starting Python gets its SIGINT once it handles stops (`nodes.start`
+        installs that first): before, the signal would kill it, -2 and no line in its log."""
+        handles_stops(self.process, HANDLER_DEADLINE_S)
         for sig, wait in ((signal.SIGINT, self.stop_deadline), (signal.SIGTERM, 3.0),
                           (signal.SIGKILL, 3.0)):
             if self.process.poll() is not None:

@@ -476,3 +476,15 @@ def test_a_node_that_cannot_go_on_ends_the_run_with_its_reason_on_the_console(
     assert result.returncode == 1
     assert reason in result.stderr
     assert 'summary: stopped after' in result.stdout
+
+
+@pytest.mark.parametrize('node', ['controller', 'sim'])
+def test_a_node_stopped_the_moment_it_was_started_ends_cleanly(tmp_path, graph_env, node):
+    """A stop that reached a node process while Python itself was starting killed it (-2,
+    nothing in its log: the one sim -2 in a stop at 5 s, when bringup had just started the
+    source). bringup now sends the SIGINT once the process handles stops."""
+    from activeloc_ros.bringup import parse_args
+    from activeloc_ros.supervisor import Child
+    child = Child(node, parse_args([]), tmp_path, graph_env)
+    assert child.stop() == 0, child.tail()
+    assert 'stopped' in (tmp_path / f'{node}.log').read_text()
