@@ -9,6 +9,12 @@ from activeloc_ros.sources import default_bag
 
 MODES = ('realtime', 'lockstep')
 DEFAULT_CAMERA = f'virtual:bag:{default_bag()}'
+# where each node's parameters are declared, ROS-free
+PARAMS_MODULES = {'camera': 'activeloc_ros.camera_params', 'sim': 'activeloc_ros.sim_params',
+                  'tracking': 'activeloc_ros.tracking.params',
+                  'perception': 'activeloc_ros.perception.params',
+                  'controller': 'activeloc_ros.control.params',
+                  'arm': 'activeloc_ros.control.arm_params'}
 
 
 def graph_nodes(args) -> tuple[str, ...]:
@@ -114,8 +120,8 @@ def screen_aim_limits(camera: str, files) -> dict[str, float]:
 
 
 def node_params(node: str) -> list:
-    """The parameters a node declares."""
-    return list(importlib.import_module(f'activeloc_ros.nodes.{node}_node').PARAMS)
+    """The parameters a node declares (`PARAMS_MODULES`)."""
+    return list(importlib.import_module(PARAMS_MODULES[node]).PARAMS)
 
 
 def node_values(node: str, files=(), ros_args=()) -> dict:

@@ -11,6 +11,7 @@ import importlib
 from pathlib import Path
 import sys
 
+from activeloc_ros.graph_plan import PARAMS_MODULES
 from activeloc_ros.paths import NODE_NAMES, write_atomic
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -31,7 +32,7 @@ def render() -> str:
              'start (`ros2 param set` is refused); the others apply at once. `ros2 run '
              'activeloc_ros NODE --help` prints the same list.', '']
     for node in NODE_NAMES:
-        module = importlib.import_module(f'activeloc_ros.nodes.{node}_node')
+        module = importlib.import_module(PARAMS_MODULES[node])
         lines += [f'## {node}_node', '', '| parameter | default | read-only | description |',
                   '|---|---|---|---|']
         for p in module.PARAMS:
