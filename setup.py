@@ -49,7 +49,12 @@ setup(
         'numpy1': ['numpy>=1.24,<2', 'opencv-contrib-python-headless==4.11.0.86'],
         'numpy2': ['numpy>=2', 'opencv-contrib-python-headless==5.0.0.93'],
         'realsense': ['pyrealsense2'],
-        'test': ['pytest==9.2.0', 'hypothesis==6.170.15'],
+        'test': ['pytest==9.2.0', 'hypothesis==6.170.15',
+                 # ament_flake8's checks (test_flake8.py)
+                 'flake8==7.5.0', 'flake8-blind-except==0.2.1', 'flake8-builtins==3.1.0',
+                 'flake8-class-newline==1.6.0', 'flake8-comprehensions==3.17.0',
+                 'flake8-deprecated==2.4.0', 'flake8-import-order==0.19.2',
+                 'flake8-quotes==3.4.0'],
     },
     zip_safe=True,
     maintainer='activeloc_ros developers',

@@ -47,11 +47,11 @@ import time
 
 from activeloc_ros.checks import argument, finite
 from activeloc_ros.errors import ActivelocError, ConfigError
-from activeloc_ros.graph_plan import DEFAULT_CAMERA, MODES, graph_nodes, own_ros_args
+from activeloc_ros.graph_plan import DEFAULT_CAMERA, graph_nodes, MODES, own_ros_args
 from activeloc_ros.nodes.monitor import Monitor, percentile_text
 from activeloc_ros.preflight import preflight
 from activeloc_ros.screen import AIM_LIMITS
-from activeloc_ros.supervisor import WARNING_LINE, Child, StopRequest
+from activeloc_ros.supervisor import Child, StopRequest, WARNING_LINE
 
 # What the nodes publish (README, "The graph"): a recording subscribes to these before any
 # node starts, so it holds every message from the first on.
@@ -362,8 +362,8 @@ def main(argv=None) -> int:
         try:
             import rclpy  # noqa: F401
         except ModuleNotFoundError:
-            print("bringup: error: rclpy is not installed: source a ROS 2 Jazzy (source "
-                  "/opt/ros/jazzy/setup.bash) or install the PyPI wheels with pip install "
+            print('bringup: error: rclpy is not installed: source a ROS 2 Jazzy (source '
+                  '/opt/ros/jazzy/setup.bash) or install the PyPI wheels with pip install '
                   "'.[ros]'", file=sys.stderr)
             return 2
         return run(args, asked)

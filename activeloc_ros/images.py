@@ -81,7 +81,7 @@ def compressed_size(data) -> tuple[int, int] | None:
         # SOF0..SOF15 carry the size; C4 (DHT), C8 (JPG) and CC (DAC) share the range
         if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
             return int.from_bytes(head[i + 7:i + 9], 'big'), int.from_bytes(head[i + 5:i + 7],
-                                                                               'big')
+                                                                            'big')
         if marker == 0xFF:      # fill byte
             i += 1
         elif 0xD0 <= marker <= 0xD7 or marker == 0x01:     # no length field

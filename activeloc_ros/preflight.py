@@ -52,7 +52,7 @@ def preflight(args) -> None:
     backend, _, port = args.arm.partition(':')
     if backend not in ('sim', 'serial') or (backend == 'serial') != bool(port):
         raise ConfigError(f"--arm {args.arm!r}: use 'sim' or 'serial:PORT' (e.g. "
-                          "serial:/dev/ttyACM0)")
+                          'serial:/dev/ttyACM0)')
     if kind == 'virtual' and backend != 'sim':
         raise ConfigError(f'--camera {args.camera}: the virtual camera rides on the sim '
                           "node's simulated arm, so --arm must be 'sim'")

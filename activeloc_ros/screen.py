@@ -30,6 +30,7 @@ from activeloc_ros.errors import ConfigError
 # 'screen' = never so far that any of its view leaves the screen (it caps even the oracle).
 AIM_LIMITS = ('arm', 'screen')
 
+
 @dataclass(frozen=True)
 class ScreenConfig:
     """The screen, where the camera stands, and the camera itself.
@@ -129,7 +130,7 @@ class VirtualScreen:
         fx = self.K[0, 0]
         half = ((c.screen_width_m, c.width), (c.screen_height_m, c.height))
         alone = [max(0.0, math.atan(size_m / 2.0 / self.distance)
-                      - math.atan(pixels / 2.0 / fx)) for size_m, pixels in half]
+                     - math.atan(pixels / 2.0 / fx)) for size_m, pixels in half]
         low, high = 0.0, 1.0
         if self._on_screen(*alone):
             low = 1.0
@@ -286,4 +287,3 @@ class VirtualScreen:
         inside = self.in_view(canvas_pts, pan, tilt, canvas_wh).reshape(ch, cw)
         placed[~inside] = -1.0
         return placed
-

@@ -33,7 +33,7 @@ PARAMS = [
           positive, read_only=True),
     Param('lockstep_command_timeout', 5.0, "lockstep: longest wait for the arm state's "
           "echo and for the controller's answer to an action location, s; longer than the "
-          "DDS heartbeat period (Fast DDS: 3 s) after which a reliable message lost on the "
+          'DDS heartbeat period (Fast DDS: 3 s) after which a reliable message lost on the '
           'way is sent again', positive, read_only=True),
     *SCREEN_PARAMS,
     *MAPPING_PARAMS,

@@ -25,8 +25,8 @@ import cv2
 import numpy as np
 
 from activeloc_ros import data, metrics
-from activeloc_ros.bag.read import (CAMERA_INFO_TYPE, IMAGE_TYPES, bag_facts, choose_image_topic,
-                                    read_messages)
+from activeloc_ros.bag.read import (
+    bag_facts, CAMERA_INFO_TYPE, choose_image_topic, IMAGE_TYPES, read_messages)
 from activeloc_ros.errors import DataError, FrameError, SourceError
 from activeloc_ros.images import decode_compressed, image_to_rgb
 from activeloc_ros.paths import share_path
@@ -77,6 +77,7 @@ class Source:
 
 
 class BagSource(Source):
+
     def __init__(self, path: Path, *, topic: str = ''):
         super().__init__()
         self.facts = bag_facts(path)
@@ -131,6 +132,7 @@ class BagSource(Source):
 
 
 class VideoSource(Source):
+
     def __init__(self, path: Path):
         super().__init__()
         self.path = Path(path)
@@ -166,6 +168,7 @@ class VideoSource(Source):
 
 
 class FolderSource(Source):
+
     def __init__(self, path: Path, *, fps: float = 10.0):
         super().__init__()
         self.path = Path(path)
@@ -316,7 +319,7 @@ def open_scene(scene: str, *, image_topic: str = '', folder_fps: float = 10.0) -
     root = data.default_data_root()
     if root is None or not root.is_dir():
         raise SourceError(f'cannot look up the sequence {scene!r}: no folder of annotated '
-                          f'sequences (set {data.ENV_VAR}=DIR, or give the sequence\'s '
+                          f"sequences (set {data.ENV_VAR}=DIR, or give the sequence's "
                           f'folder); the scene is otherwise {SCENE_HELP}')
     if (root / scene / data.META_FILE).is_file():
         return SequenceSource(root / scene)

@@ -16,7 +16,7 @@ import tempfile
 
 import numpy as np
 
-from activeloc_ros.bag.read import BagFacts, bag_facts, format_facts
+from activeloc_ros.bag.read import bag_facts, BagFacts, format_facts
 from activeloc_ros.bag.write import BagWriter, RecordingError
 from activeloc_ros.errors import SourceError
 from activeloc_ros.paths import file_sha256

@@ -21,6 +21,7 @@ def command(joints_deg, names=JOINT_NAMES) -> JointState:
 
 
 class Probe:
+
     def __init__(self, context):
         self.node = Node('probe', context=context)
         reliable = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
@@ -221,7 +222,7 @@ def test_random_commands_never_leave_the_joint_limits(arm_graph):
 
 @pytest.mark.parametrize('backend', ['sim', 'node'])
 def test_a_command_that_moves_a_joint_which_does_not_aim_is_refused(arm_graph, context,
-                                                                     backend):
+                                                                    backend):
     """The foreign pose of the hostile test: every joint outside its limits, the gripper
     open. The arm (or the virtual camera's arm) refuses all of it and says why."""
     foreign = (250.0, 0.0, -30.0, 200.0, 190.0, 0.0)
@@ -336,8 +337,8 @@ def test_the_serial_link_reports_its_health_on_diagnostics(arm_graph, tmp_path):
         assert latest(DiagnosticStatus.OK)
         probe.commands.publish(command(HOME_DEG))
         assert spin_until(executor, lambda: HOME_DEG in emulator.host_writes(), 5.0)
-        assert spin_until(executor, lambda: dict(
-            (v.key, v.value) for v in reports[-1].values)['commands sent'] == '1', 5.0)
+        assert spin_until(executor, lambda: {
+            v.key: v.value for v in reports[-1].values}['commands sent'] == '1', 5.0)
         status = reports[-1]
         assert (status.name, status.message, status.hardware_id) == (
             'arm: serial link', 'connected', emulator.path)

@@ -185,7 +185,7 @@ def test_a_node_that_ended_by_itself_survives_a_stop_in_its_last_moments(graph_e
 
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
 def test_a_stop_while_perception_builds_its_int8_encoder_ends_the_build(launch, tmp_path,
-                                                                         sig):
+                                                                        sig):
     """The first use of an int8 encoder builds it for about a minute before the node is
     ready. A stop then ends the build at once, as on any frame, and leaves no model in the
     cache (bringup once had to SIGKILL the node after 13 s)."""
@@ -209,7 +209,7 @@ def test_a_stop_while_perception_builds_its_int8_encoder_ends_the_build(launch, 
     assert left == []
 
 
-SWALLOWING_START = '''
+SWALLOWING_START = """
 import sys, time
 from activeloc_ros.nodes.process import run
 
@@ -226,7 +226,7 @@ def make_node(context):           # a start that swallows every KeyboardInterrup
             pass
 
 sys.exit(run(make_node, [], on_stop=lambda node: None))
-'''
+"""
 
 
 def test_a_start_that_swallows_the_stop_is_ended_all_the_same(tmp_path):

@@ -25,7 +25,7 @@ REPO = Path(__file__).resolve().parents[1]
 def test_h264_writer_round_trip(tmp_path):
     rng = np.random.default_rng(1)
     frames = [np.full((48, 64, 3), 40 * i, np.uint8) + rng.integers(0, 8, (48, 64, 3),
-                                                                      dtype=np.uint8)
+                                                                    dtype=np.uint8)
               for i in range(6)]
     writer = H264Writer(tmp_path / 'v.mp4', 12.5, (64, 48))
     for frame in frames:

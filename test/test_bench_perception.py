@@ -79,7 +79,6 @@ def test_floor_counts_each_stage_and_divides_by_a_measured_peak(capsys):
     assert 1.0 < stages['update']['gflop'] / stages['predict']['gflop'] < 3.0
 
 
-
 @pytest.mark.parametrize('config, default', [
     ({'num_threads': 2}, True), ({'hidden': 512, 'num_threads': 1}, True),
     ({'hidden': 64}, False), ({'pretrained': False}, False),

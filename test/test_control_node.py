@@ -329,7 +329,7 @@ def test_gains_and_limits_set_at_run_time_apply_to_the_next_command(graph):
     ({'min_peak': math.nan}, 'min_peak must not be NaN'),
 ])
 def test_a_run_time_change_that_would_not_apply_is_refused_with_the_reason(graph, values,
-                                                                            reason):
+                                                                           reason):
     executor, controller, probe = graph()
     before = {k: controller.get_parameter(k).value for k in values}
     [result] = set_remote(executor, probe, **values)

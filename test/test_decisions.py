@@ -50,8 +50,9 @@ def test_a_row_takes_every_figure_from_the_compare_result(tmp_path, capsys):
 
 
 def test_a_row_whose_verdict_contradicts_its_interval_is_refused(tmp_path):
-    row = decisions.row_from_compare(_result((1.0, -1.0, 0.5, -0.5)), 1, setting='x', default='0', candidate='1',
-                                     set='synthetic', decision='kept')
+    row = decisions.row_from_compare(_result((1.0, -1.0, 0.5, -0.5)), 1, setting='x',
+                                     default='0', candidate='1', set='synthetic',
+                                     decision='kept')
     assert row['verdict'] == 'no difference' and decisions.row_problem(row) is None
     row['verdict'] = 'better'
     assert 'does not match' in decisions.row_problem(row)

@@ -19,7 +19,7 @@ import torch.nn.functional as F
 from activeloc_ros.errors import ConfigError, FrameError, WeightsError
 from activeloc_ros.perception import cache, weights
 from activeloc_ros.perception.encoder_weights import build_encoder
-from activeloc_ros.perception.encoders import ENCODERS, Encoder, fold_batchnorm
+from activeloc_ros.perception.encoders import Encoder, ENCODERS, fold_batchnorm
 
 DATA = Path(__file__).parent / 'data'
 CHANNELS = {'vgg16': 512, 'vgg19': 512, 'efficientnet_lite0': 112, 'resnet50': 1024}

@@ -1,8 +1,8 @@
 """The node graph end to end: in one executor, under bringup, recorded, and with bad input."""
 import math
 from pathlib import Path
-import signal
 import re
+import signal
 import subprocess
 import sys
 import threading
@@ -22,6 +22,7 @@ SAMPLE = REPO / 'bags' / 'vtest'
 
 
 class Probe:
+
     def __init__(self, context):
         from geometry_msgs.msg import PointStamped
         from sensor_msgs.msg import JointState
@@ -316,7 +317,7 @@ def test_bringup_refuses_bad_input_before_any_node(tmp_path, graph_env, case, me
     (['--ros-args', '--garbage'], {}, "unknown ROS arguments ['--garbage'"),
     (['--ros-args', '-p', 'kp:=nan', '--'], {}, "parameter 'kp' must be a number, got 'nan'"),
     (['--ros-args', '-p', 'checkpoint:=/nonexistent', '--'], {}, "'checkpoint' must be empty or"),
-    (['--ros-args', '-p', 'kpp:=0.5', '--'], {}, "-p kpp: no node of this graph declares it "
+    (['--ros-args', '-p', 'kpp:=0.5', '--'], {}, '-p kpp: no node of this graph declares it '
                                                  "(did you mean 'kp'?)"),
 ])
 def test_bringup_checks_every_input_before_starting_any_node(tmp_path, graph_env, options,

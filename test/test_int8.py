@@ -15,8 +15,8 @@ from activeloc_ros.perception.config import PerceptionConfig
 from activeloc_ros.perception.model import SurpriseModel
 
 
-SMALL = dict(encoder='efficientnet_lite0', predictor_precision='float32', pretrained=True,
-             hidden=32, layers=3, attn_units=16, encoder_pad=0, num_threads=0)
+SMALL = {'encoder': 'efficientnet_lite0', 'predictor_precision': 'float32', 'pretrained': True,
+         'hidden': 32, 'layers': 3, 'attn_units': 16, 'encoder_pad': 0, 'num_threads': 0}
 
 
 class TinyEncoder(nn.Module):
@@ -55,7 +55,7 @@ def make(precision: str, **kw) -> SurpriseModel:
 
 
 def frames(n: int) -> list[np.ndarray]:
-    return [frame for frame in int8.calibration_frames(n)]
+    return list(int8.calibration_frames(n))
 
 
 def test_int8_features_stay_close_to_float32_and_the_model_is_built_once(cache, capsys):
@@ -141,7 +141,7 @@ def test_int8_without_openvino_says_what_to_install(cache, monkeypatch):
 
 
 def test_a_cache_it_cannot_write_is_an_error_for_int8_and_float32_for_auto(cache, monkeypatch,
-                                                                          capsys):
+                                                                           capsys):
     """Found before the minute of calibration, not after it as a PermissionError."""
     (cache / 'afile').write_text('')
     monkeypatch.setenv('ACTIVELOC_CACHE', str(cache / 'afile' / 'cache'))

@@ -19,9 +19,9 @@ from activeloc_ros.perception.config import PerceptionConfig
 from activeloc_ros.perception.features import fast_bfloat16
 from activeloc_ros.perception.model import SurpriseModel
 
-SMALL = dict(encoder='efficientnet_lite0', encoder_precision='float32',
-             predictor_precision='float32', pretrained=False, hidden=32, layers=3,
-             attn_units=16, lr=1e-3, num_threads=0)
+SMALL = {'encoder': 'efficientnet_lite0', 'encoder_precision': 'float32',
+         'predictor_precision': 'float32', 'pretrained': False, 'hidden': 32, 'layers': 3,
+         'attn_units': 16, 'lr': 1e-3, 'num_threads': 0}
 
 
 class TinyEncoder(nn.Module):

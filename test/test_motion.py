@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from activeloc_ros.bench.pointers import FrameDiffPointer, Mog2Pointer
-from activeloc_ros.world import View
 from activeloc_ros.perception import motion
+from activeloc_ros.world import View
 from test_trackers import SIZE, target
 
 H, W = 240, 320

@@ -101,7 +101,7 @@ def user_file(tmp_path, text: str) -> str:
      r"'home_deg' must be a integer array"),
 ])
 def test_a_params_file_mistake_stops_the_node_naming_file_and_key(context, tmp_path, node,
-                                                                   text, message):
+                                                                  text, message):
     from activeloc_ros.errors import ConfigError
     path = user_file(tmp_path, text)
     with pytest.raises(ConfigError, match=message) as error:
@@ -113,7 +113,7 @@ def test_a_params_file_mistake_stops_the_node_naming_file_and_key(context, tmp_p
 @pytest.mark.parametrize('text', [
     # a shared file: each node takes its own keys, the others' are for them
     "/**:\n  ros__parameters:\n    kp: 0.5\n    stop_mode: 'home'\n    overlay_alpha: 0.3\n",
-    "/robot1/controller:\n  ros__parameters:\n    kp: 0.5\n/arm:\n  ros__parameters:\n"
+    '/robot1/controller:\n  ros__parameters:\n    kp: 0.5\n/arm:\n  ros__parameters:\n'
     "    stop_mode: 'home'\n",
     '/**:\n  ros__parameters:\n    kd: 1.0e-1\n    derivative_tau: 1e-2\n'])  # rcl's numbers
 def test_a_shared_params_file_is_accepted(context, tmp_path, text):

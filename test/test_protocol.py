@@ -86,7 +86,7 @@ def test_leave_one_out_chooses_on_the_other_sequences():
 
 
 def test_a_side_is_a_method_with_its_settings():
-    side = compare.parse_side("ours --set location=peak lr=0.01 --control kd=0.1")
+    side = compare.parse_side('ours --set location=peak lr=0.01 --control kd=0.1')
     assert side['method'] == 'ours'
     assert side['settings'] == {'location': 'peak', 'lr': 0.01}
     assert side['control'] == {'kd': 0.1}

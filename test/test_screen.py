@@ -57,6 +57,7 @@ def test_render_shows_a_marker_where_it_projects_and_pan_left_moves_it_right():
     screen = VirtualScreen(ScreenConfig(width=320, height=240))
     scene = np.zeros((SCENE[1], SCENE[0], 3), np.uint8)
     scene[85:95, 150:160] = 255
+    first_x = 0.0
     for pan in (0.0, 0.2):
         image = screen.render(scene, pan, 0.0)
         ys, xs = np.nonzero(image[..., 0] > 128)

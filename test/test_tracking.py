@@ -203,7 +203,7 @@ def wall_scan(distance: float, half_width: float, t: float = 0.0) -> Scan:
 
 def test_a_path_round_an_obstacle_is_the_clear_one_nearest_the_action():
     post = wall_scan(1.0, 0.15)
-    options = dict(reach=1.5, radius=0.45, max_detour=math.radians(40))
+    options = {'reach': 1.5, 'radius': 0.45, 'max_detour': math.radians(40)}
     assert clear_direction(wall_scan(2.0, 0.15), 0.1, 0.1, **options) == 0.1   # out of reach
     left = clear_direction(post, 0.05, 0.05, **options)
     right = clear_direction(post, -0.05, -0.05, **options)

@@ -198,8 +198,8 @@ def test_lockstep_never_hangs(events, missed):
     assert sorted(step.missed) == sorted(missed)
 
 
-@pytest.mark.parametrize('kwargs', [dict(timeout=math.inf), dict(command_timeout=-1.0),
-                                    dict(timeout=0.0)])
+@pytest.mark.parametrize('kwargs', [{'timeout': math.inf}, {'command_timeout': -1.0},
+                                    {'timeout': 0.0}])
 def test_lockstep_settings_are_checked(kwargs):
     with pytest.raises(ConfigError, match='lockstep'):
         Lockstep(**kwargs)
@@ -230,7 +230,7 @@ def test_rate_is_refused_at_run_time_in_lockstep_and_applied_in_real_time(contex
     from activeloc_ros.nodes.sim_node import SimNode
     for extra, accepted in ((['lockstep:=true', SIM], False), ([], True)):
         node = SimNode(context=context, cli_args=params_args('sim', *extra,
-                                                            'wait_for_subscriber:=0.0'))
+                                                             'wait_for_subscriber:=0.0'))
         try:
             [result] = node.set_parameters([Parameter('rate', value=2.0)])
             assert result.successful is accepted, extra

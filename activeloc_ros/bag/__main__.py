@@ -27,7 +27,7 @@ def main(argv: list[str] | None = None) -> int:
     fix = sub.add_parser(
         'reindex', help='make a bag whose recording was cut off (killed, disk full) readable: '
         'keep every complete chunk, write the index and metadata.yaml (in place, like '
-        '`ros2 bag reindex`); the unfinished chunk\'s bytes go to <file>.incomplete')
+        "`ros2 bag reindex`); the unfinished chunk's bytes go to <file>.incomplete")
     fix.add_argument('path', type=Path, help='rosbag2 folder or .mcap file')
     args = parser.parse_args(argv)
     try:

@@ -16,7 +16,7 @@ from mcap.records import (
     Statistics, SummaryOffset)
 from mcap.stream_reader import get_chunk_data_stream
 
-from activeloc_ros.bag.read import READER_ERRORS, typestore, mcap_files
+from activeloc_ros.bag.read import mcap_files, READER_ERRORS, typestore
 from activeloc_ros.errors import SourceError
 from activeloc_ros.paths import write_atomic
 
@@ -147,7 +147,7 @@ def _bag_info_yaml(files: list[tuple[Path, McapScan]], version: int = 9) -> dict
             schema = scan.schemas.get(channel.schema_id)
             msgtype = schema.name if schema else ''
             entry = topics.setdefault((channel.topic, msgtype), {'count': 0,
-                                                                  'channel': channel})
+                                                                 'channel': channel})
             entry['count'] += scan.counts.get(channel_id, 0)
     described = []
     for (topic, msgtype), entry in topics.items():

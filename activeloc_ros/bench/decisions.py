@@ -59,7 +59,7 @@ def row_problem(row) -> str | None:
     if missing or unknown:
         return f'missing {missing}, unknown {unknown}'
     if row['set'] not in SETS or row['verdict'] not in VERDICTS:
-        return f"set must be one of {SETS} and verdict one of {VERDICTS}"
+        return f'set must be one of {SETS} and verdict one of {VERDICTS}'
     low, high = row['interval']
     if not low <= row['difference'] <= high:
         return 'the difference lies outside its interval'
@@ -123,7 +123,7 @@ def parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest='action', required=True)
     add = sub.add_parser('add', help='append a verdict from a compare.json')
-    add.add_argument('result', type=Path, help="a `bench compare` compare.json")
+    add.add_argument('result', type=Path, help='a `bench compare` compare.json')
     add.add_argument('--candidate', type=int, default=1,
                      help='which candidate of the result (1 = the first)')
     add.add_argument('--setting', required=True, help='the setting(s) judged')

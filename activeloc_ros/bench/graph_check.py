@@ -19,10 +19,10 @@ import yaml
 
 from activeloc_ros.bench import output_dir
 from activeloc_ros.bench.pointers import ModelPointer
-from activeloc_ros.graph_plan import camera_screen, node_values
 from activeloc_ros.closed_loop import run_episode, screen_world
 from activeloc_ros.data import FrameTruth
 from activeloc_ros.errors import ActivelocError
+from activeloc_ros.graph_plan import camera_screen, node_values
 from activeloc_ros.sources import default_bag, open_scene
 
 
@@ -93,7 +93,7 @@ def compare(graph: list, bench: list, tolerance_deg: float) -> tuple[bool, str]:
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog='python -m activeloc_ros.bench graph-check',
-        description='Run the ROS graph in lockstep and the screen benchmark\'s closed loop on '
+        description="Run the ROS graph in lockstep and the screen benchmark's closed loop on "
                     'one scene and compare the camera angles frame by frame.')
     p.add_argument('--scene', default=f'bag:{default_bag()}',
                    help='what the virtual screen shows: bag:PATH, video:PATH, a sequence '

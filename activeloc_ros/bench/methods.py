@@ -31,6 +31,7 @@ MODEL_METHODS = (*TABLE3_METHODS, *PRESETS)
 MOTION_METHODS = ('framediff', 'mog2', 'flow')   # unsupervised anchors on the picture's change
 METHODS = (*MODEL_METHODS, 'random', 'centre', 'oracle', *MOTION_METHODS, *TRACKER_METHODS)
 
+
 def method_parts(name: str) -> tuple[dict, str | None]:
     """(PerceptionConfig overrides, PD variant or None for the default gains) of a model
     method name."""

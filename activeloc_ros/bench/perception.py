@@ -43,7 +43,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         description='Per-frame latency, frames/s and memory of the perception model '
                     '(encode + predict + one online update per frame).')
     p.add_argument('--encoder', action='append', choices=ENCODER_NAMES,
-                   help='encoder to measure; repeat for several (default: the model\'s, vgg19)')
+                   help="encoder to measure; repeat for several (default: the model's, vgg19)")
     p.add_argument('--frames', type=int, default=2000, help='frames per run (default 2000)')
     p.add_argument('--warmup', type=int, default=20,
                    help='first frames left out of the latency and RSS-growth figures')
@@ -59,14 +59,14 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument('--set', nargs='+', action='extend', default=[], metavar='KEY=VALUE',
                    help='any PerceptionConfig field, e.g. --set hidden=256 lr=1e-4')
     p.add_argument('--params', nargs='+', action='extend', default=[], metavar='FILE',
-                   help="also the configuration a perception params file sets (e.g. "
+                   help='also the configuration a perception params file sets (e.g. '
                         "params/mirrored_border.yaml): each file's rows beside the default's")
     p.add_argument('--floor', action='store_true',
                    help="also each stage's arithmetic floor (GFLOP over a measured matmul "
                         'peak) and the measured/floor ratio')
     p.add_argument('--feature-gap', action='store_true',
                    help="instead of timing: how far the encoder's features in bfloat16 and "
-                        'int8 are from float32\'s (relative L2 norm) on frames of the '
+                        "int8 are from float32's (relative L2 norm) on frames of the "
                         'annotated sequences, none of which calibrated the int8 encoder')
     p.add_argument('--data', help='with --feature-gap: the sequences (default: '
                                   '$ACTIVELOC_DATA or ../shared/data/sequences)')
@@ -414,7 +414,7 @@ def main(argv: list[str]) -> int:
     jobs = []
     try:
         configurations = [('default', {})] + [(Path(f).stem, params_file_settings(f))
-                                               for f in args.params]
+                                              for f in args.params]
     except ConfigError as err:
         print(f'error: {err}', file=sys.stderr)
         return 2

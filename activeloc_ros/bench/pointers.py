@@ -10,8 +10,8 @@ import numpy as np
 
 from activeloc_ros import metrics
 from activeloc_ros.closed_loop import Pointing
-from activeloc_ros.world import View
 from activeloc_ros.errors import ConfigError
+from activeloc_ros.world import View
 
 # Paper Table 3 rows that change the perception (the controller rows are PD variants).
 ABLATIONS: dict[str, dict] = {

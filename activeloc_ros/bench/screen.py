@@ -29,13 +29,13 @@ from activeloc_ros import data
 from activeloc_ros.bench import (
     add_sequence_options, check_seed, in_threads, key_values, load_selected, names, output_dir,
     run_jobs)
-from activeloc_ros.bench.time_plots import time_plots
-from activeloc_ros.bench.video import (
-    commit_video, discard_videos, H264Writer, temporary_path)
 from activeloc_ros.bench.methods import (
     CONTROL_OPTIONS, controller_for, make_pointer, METHODS, MODEL_METHODS, params_file,
     PD_OPTIONS)
 from activeloc_ros.bench.pointers import ModelPointer
+from activeloc_ros.bench.time_plots import time_plots
+from activeloc_ros.bench.video import (
+    commit_video, discard_videos, H264Writer, temporary_path)
 from activeloc_ros.closed_loop import FrameRecord, MODES, run_episode, screen_world
 from activeloc_ros.errors import ActivelocError, ConfigError, DataError
 from activeloc_ros.paths import write_atomic
@@ -243,7 +243,7 @@ def _fmt(key: str, value: float) -> str:
 def markdown(result: dict) -> str:
     arrows = {'lower is better': '↓', 'higher is better': '↑'}
     lines = ['| method | ' + ' | '.join(f'{title} {arrows[better]}'
-                                       for _, title, better in METRICS) + ' | ms/frame |',
+                                        for _, title, better in METRICS) + ' | ms/frame |',
              '|---|' + '---:|' * (len(METRICS) + 1)]
     for row in result['methods']:
         lines.append(f'| {row["method"]} | ' + ' | '.join(
@@ -329,7 +329,7 @@ def parser() -> argparse.ArgumentParser:
                         'was captured, a fixed compute time (default 0); deterministic, '
                         'unlike realtime, so what a delay costs can be compared run to run')
     p.add_argument('--camera-fps', type=float, default=10.0, metavar='HZ',
-                   help='frame rate of the virtual camera (default 10, the bundled bag\'s; '
+                   help="frame rate of the virtual camera (default 10, the bundled bag's; "
                         '0: one picture per scene frame); the scene plays at its own rate')
     p.add_argument('--params', metavar='FILE',
                    help='a ROS 2 params file (as bringup --params): its perception section '
@@ -341,9 +341,9 @@ def parser() -> argparse.ArgumentParser:
                    help='ScreenConfig fields, e.g. view_fraction=0.3 width=640 height=480')
     p.add_argument('--control', nargs='+', action='extend', metavar='KEY=VALUE', default=[],
                    help='controller settings for every method: ' + ', '.join(
-                       PD_OPTIONS + CONTROL_OPTIONS) + " (dead_band in radians; kp and kd "
+                       PD_OPTIONS + CONTROL_OPTIONS) + ' (dead_band in radians; kp and kd '
                    "leave an ours-pd-* variant's gains; derivative=error is the paper's "
-                   "literal PD)")
+                   'literal PD)')
     p.add_argument('--aim-limits', choices=AIM_LIMITS, default='arm',
                    help="how far the camera may turn: 'arm' (default) only the arm's joints "
                         "limit it, and past the screen's edge it sees the plain wall, as the "

@@ -41,9 +41,9 @@ import numpy as np
 from activeloc_ros.bench import (
     check_seed, in_threads, key_values, names, output_dir, run_jobs)
 from activeloc_ros.bench import methods
-from activeloc_ros.bench.tracking_video import TrackingVideo
 from activeloc_ros.bench.methods import (
     method_pd, PD_OPTIONS, TABLE3_METHODS as MODEL_METHODS, TRACKER_METHODS)
+from activeloc_ros.bench.tracking_video import TrackingVideo
 from activeloc_ros.bench.video import commit_video, discard_videos
 from activeloc_ros.closed_loop import MODES, Pointing, run_episode
 from activeloc_ros.control.base import BASE_DEAD_BAND, BaseConfig, BaseController, FORWARD_RULES
@@ -154,8 +154,8 @@ def _run_job(job: dict) -> dict:
                      if job['video'] else None)
             try:
                 episode = run_episode(world, pointer, controller=control, mode=job['mode'],
-                    name=f'{job["scene"]}-{job["episode"]}',
-                    on_frame=video.add if video else None)
+                                      name=f'{job["scene"]}-{job["episode"]}',
+                                      on_frame=video.add if video else None)
             except BaseException:
                 if video:
                     video.abandon()
@@ -233,7 +233,7 @@ def summarise(runs: list[dict], methods: list[str], scenes: list[str]) -> dict:
             'failed': [{k: r[k] for k in ('method', 'scene', 'episode', 'error')}
                        for r in failed],
             'episodes': [{k: r[k] for k in ('method', 'scene', 'episode', 'scores', 'lost',
-                                              'rewards')} for r in runs if 'error' not in r]}
+                                            'rewards')} for r in runs if 'error' not in r]}
 
 
 def _mean(values: list[float]) -> float:
@@ -267,7 +267,7 @@ def table(result: dict, methods: list[str], scenes: list[str], *, title: str) ->
     lines += ['', 'episode length, accumulated reward, success rate, mean |bearing| (deg), in '
               'view (%), median distance to the person (m; the goal is 2.5), the share of '
               'locations on the person (inside its true box, %), the median error of the '
-              'distance the forward rule reads from the method\'s box (m), ms per step:', '',
+              "distance the forward rule reads from the method's box (m), ms per step:", '',
               '| method | scene | length | reward | success | bearing | in view | distance '
               '| on target | distance error | ms | lost: pinned, hidden, out of view, other |',
               '|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|']
@@ -339,7 +339,7 @@ def parser() -> argparse.ArgumentParser:
         prog='python -m activeloc_ros.bench tracking',
         description='Simulated active tracking (paper Table 1 and, on the room scene, Table '
                     '3): each method turns and drives a mobile base to keep a walking person '
-                    'in view; AD-VAT\'s recall and precision per scene.')
+                    "in view; AD-VAT's recall and precision per scene.")
     p.add_argument('--scenes', nargs='+', metavar='NAME',
                    help=f'scenes (default all): {", ".join(SCENES)}')
     p.add_argument('--methods', nargs='+', metavar='NAME',

@@ -14,8 +14,8 @@ depends on time takes it as an argument. A loop in simulated time::
     pan, tilt = ctl.mapping.pan_tilt(arm.joints)  # radians, for the angular error metric
 """
 from activeloc_ros.control.braccio import (
-    ArmMapping, check_pose, clamp_to_limits, fixed_moves, HOME_DEG, JOINT_NAMES, JointGuard, LIMITS_DEG,
-    pose_problem, SAFETY_DEG, speed_deg_s, STEP_DELAY_MS_RANGE, within_limits)
+    ArmMapping, check_pose, clamp_to_limits, fixed_moves, HOME_DEG, JOINT_NAMES, JointGuard,
+    LIMITS_DEG, pose_problem, SAFETY_DEG, speed_deg_s, STEP_DELAY_MS_RANGE, within_limits)
 from activeloc_ros.control.geometry import angular_error, Intrinsics
 from activeloc_ros.control.pd import PD_VARIANTS, PDConfig, PDController
 from activeloc_ros.control.reactive import (
@@ -24,7 +24,8 @@ from activeloc_ros.control.sim_arm import quantize, SimArm
 
 __all__ = [
     'angular_error', 'ArmMapping', 'check_pose', 'clamp_to_limits', 'Command',
-    'ControllerConfig', 'fixed_moves', 'HOME_DEG', 'Intrinsics', 'JOINT_NAMES', 'JointGuard', 'LatencyStats',
+    'ControllerConfig', 'fixed_moves', 'HOME_DEG', 'Intrinsics', 'JOINT_NAMES', 'JointGuard',
+    'LatencyStats',
     'LIMITS_DEG', 'PD_VARIANTS', 'PDConfig', 'PDController', 'pose_problem', 'PoseHistory',
     'quantize', 'ReactiveController', 'SAFETY_DEG', 'SimArm', 'speed_deg_s', 'STEP_DELAY_MS_RANGE',
     'within_limits',

@@ -10,7 +10,7 @@ from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.pd import DERIVATIVE_MODES, PD_VARIANTS, PDConfig
 from activeloc_ros.control.reactive import ControllerConfig
 from activeloc_ros.errors import ConfigError
-from activeloc_ros.settings import MAPPING_PARAMS, mapping_from
+from activeloc_ros.settings import mapping_from, MAPPING_PARAMS
 
 # The gains, limits and filters apply at once when set at run time (ros2 param set); the
 # servo speed, the mapping and the report period are read-only. Defaults are the core's.
@@ -29,19 +29,19 @@ PARAMS = (
     Param('derivative_tau', PDConfig.derivative_tau,
           'Low-pass time constant on the derivative, s (0: off)', non_negative),
     Param('dead_band_deg', round(math.degrees(PDConfig.dead_band), 9),
-          'The arm\'s: errors below this (per axis, degrees) are ignored (0: the paper; a '
+          "The arm's: errors below this (per axis, degrees) are ignored (0: the paper; a "
           'base keeps its own 2)', in_range(0.0, 30.0)),
     Param('watchdog_timeout', ControllerConfig.watchdog_timeout,
           'No action location for this long (s): hold still', positive),
     Param('min_peak', ControllerConfig.min_peak,
-          'The arm\'s: ignore action locations whose surprise peak (z) is below this: no '
+          "The arm's: ignore action locations whose surprise peak (z) is below this: no "
           'information (a uniform 14x14 map peaks at 1/196 = 0.0051; 0: the paper; a base '
           'keeps its own 0.0102)'),
     Param('settle_time', ControllerConfig.settle_time,
           'Ignore action locations from frames captured while the camera moved or less than '
           'this long after it stopped, s (0: never, the paper)', in_range(0.0, 5.0)),
     Param('confirm_deg', ControllerConfig.confirm_deg,
-          'Act on a location that calls for a move only when the previous still frame\'s '
+          "Act on a location that calls for a move only when the previous still frame's "
           'location pointed within this many degrees of it (0: on every location, the '
           'paper; arm only)', in_range(0.0, 180.0)),
     Param('pan_limit_deg', ControllerConfig.pan_limit_deg,
@@ -84,9 +84,9 @@ PARAMS = (
 
 def config_from(values: dict) -> ControllerConfig:
     """The core's config from validated parameter values (raises ConfigError)."""
-    pd_options = dict(dead_band=math.radians(values['dead_band_deg']),
-                      derivative=values['derivative'],
-                      derivative_tau=values['derivative_tau'])
+    pd_options = {'dead_band': math.radians(values['dead_band_deg']),
+                  'derivative': values['derivative'],
+                  'derivative_tau': values['derivative_tau']}
     if values['pd_variant']:
         pd = PDConfig.variant(values['pd_variant'], **pd_options)
     else:

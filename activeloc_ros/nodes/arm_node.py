@@ -27,6 +27,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from activeloc_ros.control import clamp_to_limits, fixed_moves, JOINT_NAMES, SimArm
+from activeloc_ros.control.arm_params import PARAMS
 from activeloc_ros.control.braccio import clamp_text, refusal_text, speed_deg_s
 from activeloc_ros.control.serial_link import BraccioLink
 from activeloc_ros.nodes.clock import Rewinds
@@ -34,7 +35,6 @@ from activeloc_ros.nodes.masters import PublisherWatch
 from activeloc_ros.nodes.messages import joint_state
 from activeloc_ros.nodes.params import declare, node_help
 from activeloc_ros.nodes.process import run
-from activeloc_ros.control.arm_params import PARAMS
 
 
 LINK_TIMES = ('silence_timeout', 'reconnect_period', 'handshake_timeout')
@@ -256,7 +256,7 @@ class ArmNode(Node):
             status.hardware_id = link.path
             status.level = {'connected': DiagnosticStatus.OK,
                             'handshake': DiagnosticStatus.WARN}.get(link.state,
-                                                                     DiagnosticStatus.ERROR)
+                                                                    DiagnosticStatus.ERROR)
             status.message = {'connected': 'connected',
                               'handshake': 'opened, waiting for <ok>'}.get(
                 link.state, 'disconnected: ' + (self._last_link_event or 'not opened yet'))

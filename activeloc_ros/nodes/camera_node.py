@@ -14,16 +14,16 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 
+from activeloc_ros.camera_params import PARAMS
 from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.nodes.messages import camera_info, time_from_s
 from activeloc_ros.nodes.params import declare, node_help
 from activeloc_ros.nodes.process import frame_due, run
-from activeloc_ros.camera_params import PARAMS
 from activeloc_ros.sources import open_source, Pacer, pinhole_matrix, Playback
 
 
-
 class CameraNode(Node):
+
     def __init__(self, **kwargs):
         super().__init__('camera', **kwargs)
         self.params = declare(self, PARAMS, cli_args=kwargs.get('cli_args'),

@@ -46,6 +46,7 @@ from activeloc_ros.nodes.messages import (
 from activeloc_ros.nodes.params import declare, node_help
 from activeloc_ros.nodes.process import run
 
+
 class ControllerNode(Node):
 
     def __init__(self, **kwargs):
@@ -116,7 +117,7 @@ class ControllerNode(Node):
                   f'aim limits pan {c.pan_limit_deg:g} tilt {c.tilt_limit_deg:g} deg')
         self.get_logger().info(
             f'PD kp={pd.kp} kd={pd.kd} ({pd.derivative}'
-            + (f", pd_variant {variant!r} sets the gains" if variant else '')
+            + (f', pd_variant {variant!r} sets the gains' if variant else '')
             + f'), dead band {math.degrees(pd.dead_band):g} deg, watchdog '
             f'{c.watchdog_timeout} s, {limits}; {then}')
 
@@ -268,7 +269,7 @@ class ControllerNode(Node):
         if self._camera_frame is not None and frame != self._camera_frame:
             # pixels of another image: acting on them would aim at nothing
             self.get_logger().warning(
-                f'ignored action locations in frame {frame!r}, not the camera\'s '
+                f"ignored action locations in frame {frame!r}, not the camera's "
                 f'{self._camera_frame!r}', throttle_duration_sec=5.0)
             command = self.core.ignore('foreign frame', now)
         else:

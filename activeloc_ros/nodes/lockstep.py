@@ -132,7 +132,6 @@ class Lockstep:
         return 'next'
 
 
-
 def recorded_poses(path: Path) -> list[tuple[float, float, float]]:
     """(t, pan, tilt) of every frame of a recorded run (``bringup --record``) with a virtual
     camera: its ``camera/pose`` messages, t in seconds of their stamp (the image's, whole

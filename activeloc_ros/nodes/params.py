@@ -50,8 +50,6 @@ def _in_descriptor(spec: Param) -> bool:
     return bool(d.integer_range or d.floating_point_range)
 
 
-
-
 def declare(node, params: Sequence[Param], *, cli_args: Sequence[str] | None = None,
             use_global_arguments: bool = True,
             check_all: Callable[[dict, set], 'str | None'] | None = None,

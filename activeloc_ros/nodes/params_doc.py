@@ -24,7 +24,7 @@ def _cell(text: str) -> str:
 
 def render() -> str:
     lines = ['# Parameters', '',
-             '<!-- made by `python -m activeloc_ros.nodes.params_doc` from the nodes\' '
+             "<!-- made by `python -m activeloc_ros.nodes.params_doc` from the nodes' "
              'declarations; do not edit -->', '',
              'Every parameter each node declares, with its default. Defaults are the '
              "declarations'; `params/robot.yaml` and `params/<node>.yaml` set the values "

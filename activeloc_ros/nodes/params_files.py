@@ -20,7 +20,6 @@ from activeloc_ros.errors import ConfigError
 from activeloc_ros.paths import NODE_NAMES   # a params file section names one, or /**
 
 
-
 class _RclLoader(yaml.SafeLoader):
     """YAML as rcl reads a params file: ``1e-6`` is a number (PyYAML's 1.1 rules want a dot)."""
 

@@ -38,18 +38,19 @@ from activeloc_ros.images import (decode_compressed, float_image_fields, image_t
                                   rgb_to_image_fields)
 from activeloc_ros.nodes.health import PipelineStats
 from activeloc_ros.nodes.messages import region_message, stamp_s
-from activeloc_ros.nodes.qos import offered_reliability
 from activeloc_ros.nodes.params import declare, node_help
 from activeloc_ros.nodes.process import run
+from activeloc_ros.nodes.qos import offered_reliability
 from activeloc_ros.perception.config import PerceptionConfig
-from activeloc_ros.perception.params import MODEL_PARAMS, NODE_PARAMS, PARAMS
 from activeloc_ros.perception.model import PerceptionResult, SurpriseModel
+from activeloc_ros.perception.params import MODEL_PARAMS, NODE_PARAMS, PARAMS
 from activeloc_ros.perception.pipeline import Pipeline
 
 RELIABILITY = {'best_effort': ReliabilityPolicy.BEST_EFFORT,
                'reliable': ReliabilityPolicy.RELIABLE}
 QOS_CHECK_PERIOD_S = 1.0     # image_reliability auto: how often the publishers are looked at
 MAX_CAPTURE_AGE_S = 1.0      # a frame stamped longer ago: its stamp is no capture time
+
 
 def map_message(surprise_map) -> Float32MultiArray:
     rows, cols = surprise_map.shape
@@ -61,6 +62,7 @@ def map_message(surprise_map) -> Float32MultiArray:
 
 
 class PerceptionNode(Node):
+
     def __init__(self, **kwargs):
         super().__init__('perception', **kwargs)
         values = declare(self, PARAMS, cli_args=kwargs.get('cli_args'),

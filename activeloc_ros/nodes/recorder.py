@@ -69,7 +69,7 @@ class RecorderNode(Node):
             try:
                 self.writer.add_topic(topic, msgtype)
             except TypesysError as exc:     # a type rosbags has no definition of
-                self._cannot_record(topic, f'{msgtype} is not among the bag\'s types ({exc})')
+                self._cannot_record(topic, f"{msgtype} is not among the bag's types ({exc})")
                 return
             self.counts[topic] = 0
         self.subs[topic] = self.create_subscription(

@@ -34,15 +34,15 @@ from activeloc_ros.nodes.messages import (
     arm_joints_deg, camera_info, joint_state, stamp_ns, time_from_ns)
 from activeloc_ros.nodes.params import declare, node_help
 from activeloc_ros.nodes.process import frame_due, run
-from activeloc_ros.sim_params import PARAMS
-from activeloc_ros.settings import mapping_from, screen_from
 from activeloc_ros.screen import VirtualScreen
+from activeloc_ros.settings import mapping_from, screen_from
+from activeloc_ros.sim_params import PARAMS
 from activeloc_ros.sources import DEFAULT_SCENE_FPS, open_scene, Pacer, Playback
 from activeloc_ros.world import frame_time, ScreenWorld
 
 
-
 class SimNode(Node):
+
     def __init__(self, **kwargs):
         super().__init__('sim', **kwargs)
         self.params = declare(self, PARAMS, cli_args=kwargs.get('cli_args'),

@@ -3,15 +3,15 @@
 A node's module loads torch, OpenCV or OpenVINO before its own stop handling
 (`process.run`) is in place, which takes seconds; a Ctrl-C or SIGTERM then came out as a
 KeyboardInterrupt traceback and a failed exit. Here a stop while the module loads ends the
-process cleanly once the module is loaded (exit 0, a line saying so); then the node's ``main`` runs with
-the signal handling it always had.
+process cleanly once the module is loaded (exit 0, a line saying so); then the node's
+``main`` runs with the signal handling it always had.
 """
 import importlib
 import signal
 import sys
 
 STOPPED_LOADING = 'stopped (Ctrl-C or SIGTERM) while the node was loading'
-OUTSIDE_HANDLING = 'stopped (Ctrl-C) outside the node\'s own stop handling'
+OUTSIDE_HANDLING = "stopped (Ctrl-C) outside the node's own stop handling"
 
 
 _stop_asked: list[int] = []     # the signals that came while the module loaded

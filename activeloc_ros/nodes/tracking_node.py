@@ -43,8 +43,8 @@ from activeloc_ros.tracking.params import PARAMS
 from activeloc_ros.tracking.world import TrackingConfig, TrackingWorld
 
 
-
 class TrackingNode(Node):
+
     def __init__(self, **kwargs):
         super().__init__('tracking', **kwargs)
         self.params = declare(self, PARAMS, cli_args=kwargs.get('cli_args'),

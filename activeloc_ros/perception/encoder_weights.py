@@ -8,7 +8,7 @@ import torch
 
 from activeloc_ros.errors import ConfigError, WeightsError
 from activeloc_ros.perception.cache import read_state_dict, weights_path
-from activeloc_ros.perception.encoders import ENCODERS, Encoder, make_encoder
+from activeloc_ros.perception.encoders import Encoder, ENCODERS, make_encoder
 
 
 def layout(name: str, *, head: bool) -> dict[str, tuple[int, ...]]:

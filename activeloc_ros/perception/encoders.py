@@ -207,10 +207,10 @@ class VGGEncoder(Encoder):
     def __init__(self, name: str, *, head: bool = False, caffe: bool = False):
         cfg = VGG_CFGS[name]
         if caffe:
-            norm = dict(bgr=True, mean=CAFFE_MEAN_BGR, std=(1.0, 1.0, 1.0))
+            norm = {'bgr': True, 'mean': CAFFE_MEAN_BGR, 'std': (1.0, 1.0, 1.0)}
         else:
-            norm = dict(bgr=False, mean=tuple(255.0 * m for m in IMAGENET_MEAN_RGB),
-                        std=tuple(255.0 * s for s in IMAGENET_STD_RGB))
+            norm = {'bgr': False, 'mean': tuple(255.0 * m for m in IMAGENET_MEAN_RGB),
+                    'std': tuple(255.0 * s for s in IMAGENET_STD_RGB)}
         self.tap = vgg_pool_index(cfg, VGG_TAP_POOL) + 1
         super().__init__(name, vgg_tap_channels(cfg), **norm)
         end = vgg_pool_index(cfg, 5) + 1 if head else self.tap

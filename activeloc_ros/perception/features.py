@@ -100,7 +100,7 @@ class Features:
         height = cfg.input_height or native
         if height % self.stride:
             raise ConfigError(f"perception parameter 'input_height' must be a multiple of the "
-                              f'encoder stride {self.stride} (0: the encoder\'s own '
+                              f"encoder stride {self.stride} (0: the encoder's own "
                               f'{native}), got {height}')
         width = max(1, round(height * cfg.input_aspect / self.stride)) * self.stride
         self.input_wh = (width, height)                         # (304, 224) at 4:3

@@ -241,4 +241,3 @@ def _read_hashes(path: Path) -> dict[str, str]:
         raise DamagedError(f'{_hashes(path)} is damaged (the int8 encoder {path}): '
                            f'{REBUILD}')
     return {name.strip(): digest for digest, name in pairs}
-

