@@ -53,8 +53,8 @@ from activeloc_ros.preflight import preflight
 from activeloc_ros.screen import AIM_LIMITS
 from activeloc_ros.supervisor import Child, StopRequest, WARNING_LINE
 
-# What the nodes publish (README, "The graph"): a recording subscribes to these before any
-# node starts, so it holds every message from the first on.
+# What the nodes publish (README, "Nodes and topics"): a recording subscribes to these before
+# any node starts, so it holds every message from the first on.
 GRAPH_TOPICS = {
     'camera/image_raw': 'sensor_msgs/msg/Image',
     'camera/camera_info': 'sensor_msgs/msg/CameraInfo',

@@ -115,7 +115,7 @@ def blob_box(heatmap: np.ndarray, image_wh: tuple[float, float], *,
     the way up the error's range over the cells: at 0.15 the blob spans the moving person,
     whose top (head, shoulders) is the most surprising. The earlier rule, cells above half
     the peak, held only that top; the base read its bottom as the person's feet and drove
-    up to within 0.8-0.9 m of them (README, active tracking).
+    up to within 0.8-0.9 m of them (docs/tracking.md).
 
     Its corners are float32 numbers, the precision of the message that carries them
     (`action_region`, geometry_msgs/Point32), so a controller in the graph and one in the

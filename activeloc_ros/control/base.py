@@ -19,7 +19,7 @@ blob):
 
 The speed is ``distance_gain`` times the distance error, within ``-max_reverse`` and
 ``max_speed``: a target nearer than ``distance`` makes the base back away, so a person who
-turns back is not lost past the edge of the view (README, active tracking); without a box
+turns back is not lost past the edge of the view (docs/tracking.md); without a box
 the base keeps ``pace``. It slows as cos(bearing error): it turns first, then goes. No
 location for ``watchdog_timeout`` s stops the base. ``actions: discrete`` snaps each command
 to AD-VAT's seven actions (stop, forward, backward, turn left or right, forward and turn
@@ -27,7 +27,7 @@ left or right).
 
 Going round obstacles (``avoid``, our addition too: the paper's reactive agent has no
 planner, and a base that drives straight at the person slides only slowly round a tree
-between them, README): with a planar range scan (`Scan`), a base going forward heads
+between them, docs/tracking.md): with a planar range scan (`Scan`), a base going forward heads
 for the direction nearest the PD's that leaves a corridor ``avoid_radius`` wide on each
 side clear for ``avoid_reach`` m, looking no more than ``avoid_max_deg`` away from the
 action so that it stays in view; when every such direction is blocked it only turns. Off by

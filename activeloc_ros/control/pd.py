@@ -31,7 +31,7 @@ class PDConfig:
     :param kp: lambda_p (1/1).
     :param kd: lambda_d (seconds). 0 by default, not the paper's 0.1: the action location
         is read from a 14 x 14 map, which jumps by whole cells, and the derivative turns
-        each jump into a kick (README, Measured defaults; the paper's gains are the variant
+        each jump into a kick (docs/history.md; the paper's gains are the variant
         ``paper``).
     :param dead_band: while both error components are smaller than this (radians) the
         camera is on target: no new motion (see ``within_dead_band``). It gates the output

@@ -38,8 +38,8 @@ class ControllerConfig:
         less than this many seconds after it stopped (0: never, the paper's loop). A
         single frame seen within the gate points about as well as a still one, but a
         camera that acts on every map never stops, and then all its maps point worse
-        (screen, seeds 0-2: 9.53 deg at 0 s, 8.55 at 0.1 s, 8.12 at 0.3 s; README,
-        Measured defaults).
+        (screen, seeds 0-2: 9.53 deg at 0 s, 8.55 at 0.1 s, 8.12 at 0.3 s;
+        docs/history.md).
     :param pan_limit_deg: the controller never aims the camera farther than this from the
         home direction, left or right (the workspace, e.g. a screen's extent); the joint
         limits still apply.

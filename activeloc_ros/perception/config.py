@@ -2,7 +2,8 @@
 
 The perception node declares one ROS parameter per field, with the field's help string
 (`perception.params.model_params`); `params/perception.yaml` repeats the defaults. What each
-default was measured against is in the README (Measured defaults), not in the help strings.
+default was measured against is in docs/decisions.md and docs/history.md, not in the help
+strings.
 """
 import dataclasses
 from dataclasses import dataclass, field
@@ -36,8 +37,8 @@ class PerceptionConfig:
         'vgg19',
         'CNN encoder to the stride-16 grid. Default vgg19 to pool4: the closest stand-in for the '
         "paper's vgg16 pool4 whose ImageNet weights the registries hold; vgg16 needs "
-        '`weights`; efficientnet_lite0 is far cheaper and less accurate (README, Measured '
-        'defaults)', one_of(*ENCODER_NAMES))
+        '`weights`; efficientnet_lite0 is far cheaper and less accurate (docs/history.md)',
+        one_of(*ENCODER_NAMES))
     weights: str = _param('', 'encoder weights file; empty = the package weight cache')
     encoder_precision: str = _param(
         'auto', "arithmetic of the encoder's forward pass: float32; bfloat16 (features "
@@ -61,14 +62,14 @@ class PerceptionConfig:
         0, 'height of the encoder input, px: a multiple of the encoder stride (16), one grid '
         "row per 16 px; 0 = the encoder's own, 224 (the paper's, 14 rows). 160 (10 rows) "
         "halves the encoder's work and the predictor's cells, and follows less accurately "
-        '(params/fast.yaml; README, Weights)', in_range(0, 1024))
+        '(params/fast.yaml; docs/performance.md)', in_range(0, 1024))
     input_aspect: float = _param(
         1.0, "width over height of the encoder input: its height is input_height's (224), "
         'its width the multiple of the encoder stride (16) nearest to height x this, and the '
         "grid has one column per 16 px. 1 = the paper's 224 x 224, which squashes a 4:3 "
         "frame to three quarters of its width; the camera's own aspect keeps its picture "
-        'undistorted (4:3, 1.3333: 304 x 224, 14 rows and 19 columns; README, Measured '
-        'defaults)', in_range(0.25, 4.0))
+        'undistorted (4:3, 1.3333: 304 x 224, 14 rows and 19 columns; '
+        'docs/history.md)', in_range(0.25, 4.0))
     pretrained: bool = _param(
         True, 'load ImageNet weights; False = random encoder, for unit tests only')
     blur_ksize: int = _param(
@@ -163,8 +164,8 @@ class PerceptionConfig:
         "map value; min = their height above the map's lowest cell, so the even surprise a "
         "flat map spreads over the whole view does not pull the location to the view's "
         'centre (with location_share 0 on the screen benchmark: 1.1 and 2.5 deg closer on '
-        'tud_stadtmitte and walking2, farther on kitti_17 and otb_crossing; README, Measured '
-        'defaults)', one_of('zero', 'min'))
+        'tud_stadtmitte and walking2, farther on kitti_17 and otb_crossing; '
+        'docs/history.md)', one_of('zero', 'min'))
     location_region_share: float = _param(
         0.5, "with location region, how far up the map's range, from its lowest cell to its "
         "peak on a log scale (the prediction error's range), a cell must stand to join the "
@@ -189,9 +190,9 @@ class PerceptionConfig:
         'camera faster than the model, in real time) gets no optimiser step, so the model '
         'turns to the newer frame sooner; at most this many frames in a row, so at least one '
         "frame in this + 1 is learnt from. 0 = the paper's strict one step per frame "
-        '(default: with a 30 frames/s camera 1 makes more maps but follows worse, README, '
-        'Weights). A camera the model keeps up with, and lockstep, are never late; the '
-        "perception node's pipeline: true learns from every frame", at_least(0))
+        '(default: with a 30 frames/s camera 1 makes more maps but follows worse, '
+        'docs/performance.md). A camera the model keeps up with, and lockstep, are never late; '
+        "the perception node's pipeline: true learns from every frame", at_least(0))
     update_encoder: bool = _param(
         False, 'also train the encoder online (paper: True; it costs 2 encoder backward '
         'passes per frame)')

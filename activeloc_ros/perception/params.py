@@ -28,7 +28,7 @@ NODE_PARAMS = [
     Param('pipeline', False, 'encode the next frame while learning from this one '
           '(perception.pipeline: the same maps; torch and the encoder get half the cores each '
           'unless num_threads is set). More maps/s from a camera faster than the model, '
-          'but later ones (README, Weights). Not used when the encoder learns '
+          'but later ones (docs/performance.md). Not used when the encoder learns '
           '(update_encoder)',
           read_only=True),
 ]
