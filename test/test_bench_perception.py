@@ -37,7 +37,7 @@ def test_a_params_file_adds_its_configurations_rows_beside_the_defaults(tmp_path
     default, border = json.loads(capsys.readouterr().out)
     assert (default['configuration'], border['configuration']) == ('default +set',
                                                                    'mirrored_border +set')
-    assert (default['config']['encoder_pad'], default['config']['conv_padding']) == (0, 'reflect')
+    assert (default['config']['encoder_pad'], default['config']['conv_padding']) == (0, 'zeros')
     assert (border['config']['encoder_pad'], border['config']['conv_padding']) == (32, 'zeros')
 
     other = tmp_path / 'controller_only.yaml'

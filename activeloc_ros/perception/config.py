@@ -54,7 +54,7 @@ class PerceptionConfig:
         'camera moves (a multiple of the encoder stride, 16; 0 = off, paper; 32 with '
         'conv_padding zeros: params/mirrored_border.yaml)', at_least(0))
     conv_padding: str = _param(
-        'reflect', "what the encoder's convolutions pad their input with: zeros (the "
+        'zeros', "what the encoder's convolutions pad their input with: zeros (the "
         "paper's, as in ImageNet training) or reflect (mirrored picture at every layer: like "
         'encoder_pad the border cells see no zeros, but at no extra work)',
         one_of('zeros', 'reflect'))
