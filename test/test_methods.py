@@ -1,5 +1,4 @@
 """The benchmarks' methods: the paper preset, params files, and the flow anchor."""
-import math
 
 import numpy as np
 import pytest
@@ -32,7 +31,7 @@ def test_a_params_file_gives_perception_and_controller(tmp_path):
                     '    actuator: arm\n')
     settings, control = methods.params_file(path)
     assert settings == {'lr': 0.01}            # the node's own parameters are no model's
-    assert control == {'dead_band': pytest.approx(math.radians(1.0))}
+    assert control == {'dead_band_deg': 1.0}
     path.write_text('perception:\n  ros__parameters:\n    location: nowhere\n')
     with pytest.raises(ConfigError, match='location'):
         methods.params_file(path)

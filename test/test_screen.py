@@ -376,8 +376,8 @@ def test_an_out_folder_that_cannot_be_made_fails_before_the_run(tmp_path, capsys
 def test_control_kp_and_kd_set_the_gains_of_every_method_but_a_pd_variant():
     assert bench.controller_for('ours', {'kp': 0.5, 'kd': 0.2}).pd.kp == 0.5
     assert bench.controller_for('oracle', {'kd': 0.2}).pd.kd == 0.2
-    paper = bench.controller_for('ours-pd-paper', {'kp': 0.5, 'dead_band': 0.01}).pd
-    assert (paper.kp, paper.kd, paper.dead_band) == (1.0, 0.1, 0.01)
+    paper = bench.controller_for('ours-pd-paper', {'kp': 0.5, 'dead_band_deg': 1.0}).pd
+    assert (paper.kp, paper.kd, paper.dead_band) == (1.0, 0.1, pytest.approx(math.radians(1.0)))
     with pytest.raises(ConfigError, match='kp'):
         bench.controller_for('ours', {'kp': -1.0})
 

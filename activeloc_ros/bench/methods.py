@@ -69,16 +69,19 @@ def make_pointer(name: str, settings: dict, seed: int, *, tracker_start: str = '
     return ModelPointer(name, {'seed': seed, **settings, **overrides})
 
 
-PD_OPTIONS = ('kp', 'kd', 'dead_band', 'derivative', 'derivative_tau')
+PD_OPTIONS = ('kp', 'kd', 'dead_band_deg', 'derivative', 'derivative_tau')
 CONTROL_OPTIONS = ('settle_time', 'watchdog_timeout', 'step_delay_ms', 'min_peak',
                    'pan_limit_deg', 'tilt_limit_deg', 'confirm_deg')
 
 
 def method_pd(name: str, control: dict) -> PDConfig:
     """The PD law of a method: its Table 3 variant's gains (whatever --control says of kp and
-    kd), else the default's, with the `PD_OPTIONS` among the --control settings."""
+    kd), else the default's, with the `PD_OPTIONS` among the --control settings: the
+    controller node's names and units (``dead_band_deg`` in degrees)."""
     variant = method_parts(name)[1] if name in MODEL_METHODS else None
     pd_options = {k: v for k, v in control.items() if k in PD_OPTIONS}
+    if 'dead_band_deg' in pd_options:
+        pd_options['dead_band'] = math.radians(pd_options.pop('dead_band_deg'))
     if variant:
         return PDConfig.variant(variant, **{k: v for k, v in pd_options.items()
                                             if k not in ('kp', 'kd')})
@@ -113,12 +116,9 @@ def controller_for(name: str, control: dict, screen: VirtualScreen | None = None
 
 def control_from_node(values: dict) -> dict:
     """The controller node's parameter values as the benchmarks' --control settings: the
-    PD law's and the arm's (``dead_band_deg`` in radians); the base's and the node's own
-    parameters have no place on the screen."""
-    out = {k: v for k, v in values.items() if k in PD_OPTIONS + CONTROL_OPTIONS}
-    if 'dead_band_deg' in values:
-        out['dead_band'] = math.radians(values['dead_band_deg'])
-    return out
+    PD law's and the arm's, under the same names; the base's and the node's own parameters
+    have no place on the screen."""
+    return {k: v for k, v in values.items() if k in PD_OPTIONS + CONTROL_OPTIONS}
 
 
 def params_file(path: str | Path) -> tuple[dict, dict]:

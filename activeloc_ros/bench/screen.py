@@ -341,7 +341,8 @@ def parser() -> argparse.ArgumentParser:
                    help='ScreenConfig fields, e.g. view_fraction=0.3 width=640 height=480')
     p.add_argument('--control', nargs='+', action='extend', metavar='KEY=VALUE', default=[],
                    help='controller settings for every method: ' + ', '.join(
-                       PD_OPTIONS + CONTROL_OPTIONS) + ' (dead_band in radians; kp and kd '
+                       PD_OPTIONS + CONTROL_OPTIONS) + " (the controller node's names and "
+                   'units; kp and kd '
                    "leave an ours-pd-* variant's gains; derivative=error is the paper's "
                    'literal PD)')
     p.add_argument('--aim-limits', choices=AIM_LIMITS, default='arm',

@@ -74,8 +74,8 @@ def base_config(method: str, control: dict) -> BaseConfig:
     if unknown:
         raise ConfigError(f'unknown --control settings {unknown}; known: '
                           f'{", ".join(sorted(known | set(PD_OPTIONS)))}')
-    return BaseConfig(pd=method_pd(method, {'dead_band': BASE_DEAD_BAND, **control}),
-                      **{k: v for k, v in control.items() if k in known})
+    pd = method_pd(method, {'dead_band_deg': math.degrees(BASE_DEAD_BAND), **control})
+    return BaseConfig(pd=pd, **{k: v for k, v in control.items() if k in known})
 
 
 def make_pointer(method: str, settings: dict, seed: int):
