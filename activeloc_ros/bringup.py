@@ -6,7 +6,7 @@
     python -m activeloc_ros.bringup --record out/run1    # every topic to an MCAP bag
 
 Each node runs in its own process (as a launch file would) with `params/robot.yaml` and
-its `params/<node>.yaml`, or all in one executor with --in-process. With a virtual
+the --params files, or all in one executor with --in-process. With a virtual
 camera (--camera virtual:SCENE, the default) the sim node stands in for the camera and
 the arm: it shows the scene on the virtual screen and moves the simulated arm that aims
 the camera. A status line shows frames/s, frame-to-command latency (lockstep: the

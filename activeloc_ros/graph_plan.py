@@ -41,7 +41,7 @@ def tracking_world(args) -> tuple[str, int]:
 def node_arguments(node: str, args) -> list[str]:
     """The --ros-args of one node: its params files, the user's files, then the CLI choices."""
     ros_args = ['--ros-args']
-    for path in [*packaged_params_files(node), *args.params]:
+    for path in [*packaged_params_files(), *args.params]:
         ros_args += ['--params-file', str(path)]
     if args.mode == 'lockstep':
         ros_args += ['-p', 'use_sim_time:=true']
@@ -130,7 +130,7 @@ def node_values(node: str, files=(), ros_args=()) -> dict:
     the ``-p`` settings among ``ros_args``."""
     from activeloc_ros.nodes.params_files import file_values
     values = {p.name: p.default for p in node_params(node)}
-    values.update(file_values(node, [*packaged_params_files(node), *files]))
+    values.update(file_values(node, [*packaged_params_files(), *files]))
     values.update(cli_values(list(ros_args)))
     return values
 

@@ -6,7 +6,7 @@ import sys
 import tempfile
 
 SOURCE_ROOT = Path(__file__).resolve().parents[1]
-# the graph's nodes, each with its params/<node>.yaml, in the order bringup starts and stops
+# the graph's nodes, in the order bringup starts and stops
 # them (the arm last). A virtual camera's run has the sim node in place of camera and arm,
 # the tracking world's the tracking node.
 NODE_NAMES = ('camera', 'sim', 'tracking', 'perception', 'controller', 'arm')
@@ -27,14 +27,12 @@ def share_path(relative: str) -> Path:
     return installed if installed.exists() else here
 
 
-def packaged_params_files(node: str | None = None) -> list[Path]:
-    """The package's params files in the order they apply: params/robot.yaml (what several
-    nodes share: the home pose, the servos' speed, the aiming joints), then the node's own
-    params/<node>.yaml; without a node, every node's."""
-    robot = share_path('params/robot.yaml')
-    if node is not None:
-        return [robot, share_path(f'params/{node}.yaml')]
-    return [robot, *(share_path(f'params/{name}.yaml') for name in NODE_NAMES)]
+def packaged_params_files() -> list[Path]:
+    """The params files the package gives every node: params/robot.yaml, what several nodes
+    must agree on (the home pose, the servos' speed, the aiming joints). Everything else is
+    the nodes' declared defaults (docs/parameters.md); a user's --params file holds what
+    differs from them."""
+    return [share_path('params/robot.yaml')]
 
 
 def file_sha256(path: Path) -> str:

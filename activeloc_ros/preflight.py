@@ -98,7 +98,7 @@ def check_node_params(args) -> None:
         unknown='no node of this graph declares it')
     for node in graph_nodes(args):
         params = node_params(node)
-        found = files_problems(node, params, [*packaged_params_files(node), *args.params])
+        found = files_problems(node, params, [*packaged_params_files(), *args.params])
         if not found:
             values = node_values(node, args.params, args.ros_args)
             found = validate(params, values) or node_problems(node, values)

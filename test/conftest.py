@@ -42,11 +42,10 @@ def spin_until(executor, condition, timeout):
     return condition()
 
 
-def params_args(node: str, *extra: str) -> list[str]:
-    """cli_args loading the real params files of `node` as bringup does (the robot's, then
-    its own), then `-p name:=value` extras."""
-    args = ['--ros-args', '--params-file', str(PARAMS / 'robot.yaml'),
-            '--params-file', str(PARAMS / f'{node}.yaml')]
+def params_args(*extra: str) -> list[str]:
+    """cli_args loading the package's params file as bringup gives it to every node (the
+    robot's), then `-p name:=value` extras."""
+    args = ['--ros-args', '--params-file', str(PARAMS / 'robot.yaml')]
     for item in extra:
         args += ['-p', item]
     return args

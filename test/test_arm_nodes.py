@@ -46,7 +46,7 @@ def arm_graph(context):
     made = []
 
     def make(*overrides):
-        arm = ArmNode(context=context, cli_args=params_args('arm', *overrides))
+        arm = ArmNode(context=context, cli_args=params_args(*overrides))
         probe = Probe(context)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(arm)
@@ -139,7 +139,7 @@ def test_sim_arm_stops_on_purpose(arm_graph, mode):
 def test_bad_parameters_are_refused(context, override):
     from activeloc_ros.nodes.arm_node import ArmNode
     with pytest.raises(ConfigError):
-        ArmNode(context=context, cli_args=params_args('arm', override))
+        ArmNode(context=context, cli_args=params_args(override))
 
 
 def test_stop_on_purpose_while_another_thread_spins(arm_graph):
@@ -231,7 +231,7 @@ def test_a_command_that_moves_a_joint_which_does_not_aim_is_refused(arm_graph, c
         target = lambda: arm.sim.target    # noqa: E731
     else:
         from activeloc_ros.nodes.sim_node import SimNode
-        arm = SimNode(context=context, cli_args=params_args('sim', 'scene:=bag:bags/vtest'))
+        arm = SimNode(context=context, cli_args=params_args('scene:=bag:bags/vtest'))
         probe = Probe(context)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(arm)
@@ -312,7 +312,7 @@ def test_the_arm_process_exits_1_with_the_reason_when_the_port_is_missing(tmp_pa
     missing = str(tmp_path / 'ttyNothing')
     process = subprocess.run(
         [sys.executable, '-m', 'activeloc_ros.nodes.arm_node',
-         *params_args('arm', 'backend:=serial', f'port:={missing}', 'give_up_timeout:=0.3',
+         *params_args('backend:=serial', f'port:={missing}', 'give_up_timeout:=0.3',
                       'reconnect_period:=0.1')],
         cwd=REPO, capture_output=True, text=True, timeout=60)
     assert process.returncode == 1, process.stdout + process.stderr

@@ -41,7 +41,7 @@ def launch(tmp_path):
         log = open(tmp_path / f'{module}.log', 'w')
         process = subprocess.Popen(
             [sys.executable, '-m', f'activeloc_ros.nodes.{module}',
-             *params_args(module.removesuffix('_node'), *overrides)],
+             *params_args(*overrides)],
             cwd=REPO, env=dict(os.environ, PYTHONUNBUFFERED='1', **(env or {})), stdout=log,
             stderr=subprocess.STDOUT)
         started.append((process, log))
@@ -161,7 +161,7 @@ def test_a_node_that_ended_by_itself_survives_a_stop_in_its_last_moments(graph_e
     for attempt in range(8):
         node = subprocess.Popen(
             [sys.executable, '-u', '-m', 'activeloc_ros.nodes.start', 'camera',
-             *params_args('camera', 'max_frames:=2', 'wait_for_subscriber:=0.0')],
+             *params_args('max_frames:=2', 'wait_for_subscriber:=0.0')],
             cwd=REPO, env=graph_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
             text=True, start_new_session=True)
         try:

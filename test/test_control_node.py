@@ -59,7 +59,7 @@ def graph(context):
 
     def make(*overrides):
         controller = ControllerNode(context=context,
-                                    cli_args=params_args('controller', *overrides))
+                                    cli_args=params_args(*overrides))
         probe = Probe(context)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(controller)
@@ -150,13 +150,12 @@ def test_watchdog_holds_once_when_locations_stop(graph):
 def test_bad_parameters_are_refused_by_name(context, override, message):
     from activeloc_ros.nodes.controller_node import ControllerNode
     with pytest.raises(ConfigError, match=message):
-        ControllerNode(context=context, cli_args=params_args('controller', override))
+        ControllerNode(context=context, cli_args=params_args(override))
 
 
 def test_pd_variant_overrides_the_gains(context):
     from activeloc_ros.nodes.controller_node import ControllerNode
-    node = ControllerNode(context=context, cli_args=params_args('controller',
-                                                                'pd_variant:=low_p'))
+    node = ControllerNode(context=context, cli_args=params_args('pd_variant:=low_p'))
     try:
         assert (node.config.pd.kp, node.config.pd.kd) == (0.5, 0.1)
     finally:
@@ -172,8 +171,8 @@ def test_closed_loop_with_the_sim_arm_centres_a_still_action(context):
     two-step oscillation."""
     from activeloc_ros.nodes.arm_node import ArmNode
     from activeloc_ros.nodes.controller_node import ControllerNode
-    controller = ControllerNode(context=context, cli_args=params_args('controller'))
-    arm = ArmNode(context=context, cli_args=params_args('arm', 'backend:=sim'))
+    controller = ControllerNode(context=context, cli_args=params_args())
+    arm = ArmNode(context=context, cli_args=params_args('backend:=sim'))
     probe = Probe(context)
     pose = {}
 
@@ -221,8 +220,8 @@ def test_a_clock_that_runs_back_restarts_the_controller_and_the_arm(context):
     from activeloc_ros.nodes.arm_node import ArmNode
     from activeloc_ros.nodes.controller_node import ControllerNode
     sim_time = 'use_sim_time:=true'
-    controller = ControllerNode(context=context, cli_args=params_args('controller', sim_time))
-    arm = ArmNode(context=context, cli_args=params_args('arm', 'backend:=sim', sim_time))
+    controller = ControllerNode(context=context, cli_args=params_args(sim_time))
+    arm = ArmNode(context=context, cli_args=params_args('backend:=sim', sim_time))
     probe = Probe(context)
     clock = probe.node.create_publisher(ClockMsg, '/clock', 10)
     now = {'t': 100.0}
@@ -347,8 +346,8 @@ def test_a_base_setting_is_refused_by_the_arms_controller(graph):
 def test_an_arm_setting_is_refused_by_a_bases_controller_and_named_at_start(context, capfd):
     from types import SimpleNamespace
     from activeloc_ros.nodes.controller_node import ControllerNode
-    controller = ControllerNode(context=context, cli_args=params_args(
-        'controller', 'actuator:=base', 'settle_time:=0.5'))
+    controller = ControllerNode(context=context,
+                                cli_args=params_args('actuator:=base', 'settle_time:=0.5'))
     probe = SimpleNamespace(node=Node('probe', context=context))
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(controller)

@@ -47,10 +47,10 @@ def test_graph_in_one_executor(context):
     from activeloc_ros.nodes.controller_node import ControllerNode
     from activeloc_ros.nodes.perception_node import PerceptionNode
     # the bag loops, so however fast this machine's perception is, maps keep coming
-    nodes = [CameraNode(context=context, cli_args=params_args('camera', 'loop:=true')),
-             PerceptionNode(context=context, cli_args=params_args('perception')),
-             ControllerNode(context=context, cli_args=params_args('controller')),
-             ArmNode(context=context, cli_args=params_args('arm', 'backend:=sim'))]
+    nodes = [CameraNode(context=context, cli_args=params_args('loop:=true')),
+             PerceptionNode(context=context, cli_args=params_args()),
+             ControllerNode(context=context, cli_args=params_args()),
+             ArmNode(context=context, cli_args=params_args('backend:=sim'))]
     probe = Probe(context)
     executor = MultiThreadedExecutor(num_threads=4, context=context)
     for node in nodes + [probe.node]:
@@ -92,7 +92,7 @@ def test_destroying_the_camera_waits_for_a_tick_in_progress(context):
     running: the camera closes its source after the tick's read, never under it."""
     from activeloc_ros.nodes.camera_node import CameraNode
     camera = CameraNode(context=context,
-                        cli_args=params_args('camera', 'wait_for_subscriber:=0.0'))
+                        cli_args=params_args('wait_for_subscriber:=0.0'))
     reading, release, errors, frames = threading.Event(), threading.Event(), [], []
     read = camera.source.read
 
@@ -125,7 +125,7 @@ def test_destroying_the_camera_waits_for_a_tick_in_progress(context):
 def test_unsupported_images_are_skipped_and_logged_once(context):
     from sensor_msgs.msg import Image
     from activeloc_ros.nodes.perception_node import PerceptionNode
-    node = PerceptionNode(context=context, cli_args=params_args('perception'))
+    node = PerceptionNode(context=context, cli_args=params_args())
     probe = Probe(context)
     pub = probe.node.create_publisher(Image, 'camera/image_raw', 10)
     executor = MultiThreadedExecutor(context=context)
@@ -170,7 +170,7 @@ def test_invalid_parameters_name_the_parameter(context, node_name, override, par
     from activeloc_ros.nodes.camera_node import CameraNode
     from activeloc_ros.nodes.perception_node import PerceptionNode
     cls = {'camera': CameraNode, 'perception': PerceptionNode}[node_name]
-    args = params_args(node_name, override)
+    args = params_args(override)
     if param is None:
         cls(context=context, cli_args=args).destroy_node()
         return

@@ -21,8 +21,8 @@ def test_a_second_controller_is_said_by_the_controller_and_the_arm(context):
     from diagnostic_msgs.msg import DiagnosticArray
     from activeloc_ros.nodes.arm_node import ArmNode
     from activeloc_ros.nodes.controller_node import ControllerNode
-    first = ControllerNode(context=context, cli_args=params_args('controller'))
-    arm = ArmNode(context=context, cli_args=params_args('arm'))
+    first = ControllerNode(context=context, cli_args=params_args())
+    arm = ArmNode(context=context, cli_args=params_args())
     heard: list[str] = []
     probe = Node('probe', context=context)
     watch = PublisherWatch(probe, 'joint_commands', say=heard.append, diagnostics=False)
@@ -36,7 +36,7 @@ def test_a_second_controller_is_said_by_the_controller_and_the_arm(context):
     try:
         assert spin_until(executor, lambda: watch.publishers == ('/controller',), 5.0)
         assert not heard and first.masters.warnings == 0
-        second = ControllerNode(context=context, cli_args=params_args('controller', 'kp:=0.5'))
+        second = ControllerNode(context=context, cli_args=params_args('kp:=0.5'))
         executor.add_node(second)
         assert spin_until(executor, lambda: heard and arm.masters.warnings == 1
                           and first.masters.warnings == 1 and second.masters.warnings == 1,

@@ -1,4 +1,5 @@
-"""Every key of params/<node>.yaml is a declared parameter of that node, with a description."""
+"""The nodes' parameters: declared with a description, set by the package only where several
+nodes must agree (params/robot.yaml), and the other configurations' files valid."""
 import math
 
 import pytest
@@ -15,18 +16,23 @@ def node_class(name):
 
 
 @pytest.mark.parametrize('name', NODE_NAMES)
-def test_params_file_matches_declared_parameters(context, name):
-    content = yaml.safe_load((PARAMS / f'{name}.yaml').read_text())
-    keys = set(content['/**']['ros__parameters'])
-    node = node_class(name)(context=context, cli_args=params_args(name))
+def test_every_declared_parameter_has_a_description(context, name):
+    node = node_class(name)(context=context, cli_args=params_args())
     try:
-        undeclared = {k for k in keys if not node.has_parameter(k)}
-        assert not undeclared, f'{name}.yaml sets parameters the node does not declare'
-        for key in keys:
-            assert node.describe_parameter(key).description, f'{key} has no description'
-            assert node.get_parameter(key).value == content['/**']['ros__parameters'][key]
+        for key in node._parameters:
+            if key not in ('use_sim_time', 'start_type_description_service'):
+                assert node.describe_parameter(key).description, f'{key} has no description'
     finally:
         node.destroy_node()
+
+
+def test_the_package_gives_its_nodes_only_the_robot_file():
+    """Defaults live in the declarations alone: a params file that repeated them would be a
+    second place a value has to be changed, and a stale copy would win over the code."""
+    from activeloc_ros.paths import packaged_params_files
+    assert [p.name for p in packaged_params_files()] == ['robot.yaml']
+    for name in NODE_NAMES:
+        assert not (PARAMS / f'{name}.yaml').exists(), f'params/{name}.yaml repeats defaults'
 
 
 def test_robot_yaml_is_declared_by_the_nodes_that_share_it(context):
@@ -36,7 +42,7 @@ def test_robot_yaml_is_declared_by_the_nodes_that_share_it(context):
     values = content['/**']['ros__parameters']
     sharing = {key: [] for key in values}
     for name in NODE_NAMES:
-        node = node_class(name)(context=context, cli_args=params_args(name))
+        node = node_class(name)(context=context, cli_args=params_args())
         try:
             for key, value in values.items():
                 if node.has_parameter(key):
@@ -45,16 +51,6 @@ def test_robot_yaml_is_declared_by_the_nodes_that_share_it(context):
         finally:
             node.destroy_node()
     assert all(len(names) >= 2 for names in sharing.values()), sharing
-
-
-def test_perception_yaml_repeats_the_model_defaults():
-    """The YAML overrides the dataclass, so a stale value would silently change the model."""
-    import dataclasses
-    from activeloc_ros.perception.config import PerceptionConfig
-    values = yaml.safe_load((PARAMS / 'perception.yaml').read_text())['/**']['ros__parameters']
-    for field in dataclasses.fields(PerceptionConfig):
-        assert field.name in values, f'perception.yaml lacks {field.name}'
-        assert values[field.name] == field.default, f'perception.yaml: stale {field.name}'
 
 
 @pytest.mark.parametrize('name, expected', [
@@ -106,7 +102,7 @@ def test_a_params_file_mistake_stops_the_node_naming_file_and_key(context, tmp_p
     path = user_file(tmp_path, text)
     with pytest.raises(ConfigError, match=message) as error:
         node_class(node)(context=context,
-                         cli_args=params_args(node) + ['--params-file', path])
+                         cli_args=params_args() + ['--params-file', path])
     assert path in str(error.value)
 
 
@@ -119,7 +115,7 @@ def test_a_params_file_mistake_stops_the_node_naming_file_and_key(context, tmp_p
 def test_a_shared_params_file_is_accepted(context, tmp_path, text):
     path = user_file(tmp_path, text)
     node = node_class('controller')(context=context,
-                                    cli_args=params_args('controller') + ['--params-file', path])
+                                    cli_args=params_args() + ['--params-file', path])
     try:
         assert node.get_parameter('kp').value in (0.5, 1.0)
     finally:
@@ -161,7 +157,7 @@ def test_params_file_problems_is_a_pure_function():
     ('arm', 'step_delay_ms', 'integer_range', (10, 30)),
     ('perception', 'overlay_alpha', 'floating_point_range', (0.0, 1.0))])
 def test_ranges_are_in_the_descriptors(context, node, name, kind, bounds):
-    made = node_class(node)(context=context, cli_args=params_args(node))
+    made = node_class(node)(context=context, cli_args=params_args())
     try:
         ranges = getattr(made.describe_parameter(name), kind)
         assert len(ranges) == 1
@@ -174,7 +170,7 @@ def test_ranges_are_in_the_descriptors(context, node, name, kind, bounds):
 
 def test_rclpy_enforces_the_descriptor_ranges(context):
     from rclpy.parameter import Parameter
-    node = node_class('controller')(context=context, cli_args=params_args('controller'))
+    node = node_class('controller')(context=context, cli_args=params_args())
     try:
         for value in (-0.1, 180.5, math.nan, math.inf):
             result = node.set_parameters([Parameter('pan_limit_deg', value=value)])[0]
@@ -191,7 +187,7 @@ def test_an_open_ended_parameter_refuses_infinity(context, node, name):
     """A positive parameter without an upper bound still needs a finite value: an infinite
     silence timeout never notices a hung Arduino, an infinite stop timeout overflows the wait."""
     from rclpy.parameter import Parameter
-    made = node_class(node)(context=context, cli_args=params_args(node))
+    made = node_class(node)(context=context, cli_args=params_args())
     try:
         before = made.get_parameter(name).value
         for value in (math.inf, math.nan, 0.0):
@@ -206,9 +202,9 @@ def test_a_command_line_parameter_no_node_declares_is_refused_not_ignored(contex
     from activeloc_ros.errors import ConfigError
     from activeloc_ros.nodes.controller_node import ControllerNode
     with pytest.raises(ConfigError, match="-p kpp: no such parameter \\(did you mean 'kp'"):
-        ControllerNode(context=context, cli_args=params_args('controller', 'kpp:=0.5'))
-    made = ControllerNode(context=context, cli_args=params_args(
-        'controller', 'kp:=0.5', 'use_sim_time:=false') + ['-p', 'camera:rate:=2.0'])
+        ControllerNode(context=context, cli_args=params_args('kpp:=0.5'))
+    made = ControllerNode(context=context, cli_args=params_args('kp:=0.5', 'use_sim_time:=false')
+                          + ['-p', 'camera:rate:=2.0'])
     assert made.get_parameter('kp').value == 0.5          # (a node-prefixed rule is rcl's)
     made.destroy_node()
 
@@ -250,5 +246,6 @@ def test_every_node_prints_its_help_instead_of_starting(node_name, capsys):
     assert module.main([f'{node_name}_node', '--help']) == 0
     out = capsys.readouterr().out
     assert out.startswith(f'usage: ros2 run activeloc_ros {node_name}_node')
-    keys = yaml.safe_load((PARAMS / f'{node_name}.yaml').read_text())['/**']['ros__parameters']
+    from activeloc_ros.graph_plan import node_params
+    keys = [p.name for p in node_params(node_name)]
     assert keys and all(f'\n  {name} ' in out for name in keys)

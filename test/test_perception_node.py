@@ -23,8 +23,8 @@ def rig(context):
     made = []
 
     def make(*overrides):
-        node = PerceptionNode(context=context, cli_args=params_args(
-            'perception', 'diagnostics_period:=0.2', *overrides))
+        node = PerceptionNode(context=context,
+                              cli_args=params_args('diagnostics_period:=0.2', *overrides))
         probe = Node('probe', context=context)
         heard = {'maps': [], 'diagnostics': []}
         probe.create_subscription(Image, 'surprise_map/image', heard['maps'].append, 10)

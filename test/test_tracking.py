@@ -408,8 +408,8 @@ def test_a_realtime_world_applies_cmd_vel_at_once_after_its_rate_is_raised(conte
     from rclpy.parameter import Parameter
     from activeloc_ros.nodes.tracking_node import TrackingNode
     from conftest import params_args, spin_until
-    node = TrackingNode(context=context, cli_args=params_args(
-        'tracking', 'wait_for_subscriber:=0.0', 'scene:=room'))
+    node = TrackingNode(context=context,
+                        cli_args=params_args('wait_for_subscriber:=0.0', 'scene:=room'))
     probe = Node('probe', context=context)
     turn = probe.create_publisher(TwistMsg, 'cmd_vel', 10)
     executor = SingleThreadedExecutor(context=context)

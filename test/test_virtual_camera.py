@@ -220,7 +220,7 @@ SIM = 'use_sim_time:=true'
 def test_bad_sim_settings(context, extra, message):
     from activeloc_ros.nodes.sim_node import SimNode
     with pytest.raises((ConfigError, SourceError), match=message):
-        SimNode(context=context, cli_args=params_args('sim', *extra))
+        SimNode(context=context, cli_args=params_args(*extra))
 
 
 def test_rate_is_refused_at_run_time_in_lockstep_and_applied_in_real_time(context):
@@ -229,7 +229,7 @@ def test_rate_is_refused_at_run_time_in_lockstep_and_applied_in_real_time(contex
     from rclpy.parameter import Parameter
     from activeloc_ros.nodes.sim_node import SimNode
     for extra, accepted in ((['lockstep:=true', SIM], False), ([], True)):
-        node = SimNode(context=context, cli_args=params_args('sim', *extra,
+        node = SimNode(context=context, cli_args=params_args(*extra,
                                                              'wait_for_subscriber:=0.0'))
         try:
             [result] = node.set_parameters([Parameter('rate', value=2.0)])
@@ -272,8 +272,8 @@ def test_realtime_sim_moves_its_arm_and_the_camera_with_it(context):
     from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
     from activeloc_ros.nodes.sim_node import SimNode
-    sim = SimNode(context=context, cli_args=params_args(
-        'sim', 'rate:=5.0', 'loop:=true', 'wait_for_subscriber:=0.0'))
+    sim = SimNode(context=context,
+                  cli_args=params_args('rate:=5.0', 'loop:=true', 'wait_for_subscriber:=0.0'))
     probe = Probe(context)
     executor = SingleThreadedExecutor(context=context)
     for node in (sim, probe.node):
@@ -310,7 +310,7 @@ def test_max_frames_ends_a_realtime_sim_too(context):
     from rclpy.executors import SingleThreadedExecutor
     from activeloc_ros.nodes.sim_node import SimNode
     sim = SimNode(context=context, cli_args=params_args(
-        'sim', 'rate:=5.0', 'loop:=true', 'wait_for_subscriber:=0.0', 'max_frames:=3'))
+        'rate:=5.0', 'loop:=true', 'wait_for_subscriber:=0.0', 'max_frames:=3'))
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(sim)
     try:
@@ -331,10 +331,10 @@ def test_lockstep_graph_steps_frame_by_frame_like_closed_loop(context):
     from activeloc_ros.nodes.perception_node import PerceptionNode
     from activeloc_ros.nodes.sim_node import SimNode
     frames = 8
-    nodes = [PerceptionNode(context=context, cli_args=params_args('perception', SIM)),
-             ControllerNode(context=context, cli_args=params_args('controller', SIM)),
-             SimNode(context=context, cli_args=params_args(
-                 'sim', 'lockstep:=true', SIM, f'max_frames:={frames}'))]
+    nodes = [PerceptionNode(context=context, cli_args=params_args(SIM)),
+             ControllerNode(context=context, cli_args=params_args(SIM)),
+             SimNode(context=context,
+                     cli_args=params_args('lockstep:=true', SIM, f'max_frames:={frames}'))]
     sim = nodes[-1]
     probe = Probe(context)
     executor = MultiThreadedExecutor(num_threads=4, context=context)

@@ -27,8 +27,9 @@ def render() -> str:
              "<!-- made by `python -m activeloc_ros.nodes.params_doc` from the nodes' "
              'declarations; do not edit -->', '',
              'Every parameter each node declares, with its default. Defaults are the '
-             "declarations'; `params/robot.yaml` and `params/<node>.yaml` set the values "
-             'bringup gives each node (the YAML wins). Read-only parameters are fixed at '
+             "declarations'; the package's one params file, `params/robot.yaml`, sets what "
+             'several nodes must agree on, and a --params file holds what you change (the '
+             'YAML wins). Read-only parameters are fixed at '
              'start (`ros2 param set` is refused); the others apply at once. `ros2 run '
              'activeloc_ros NODE --help` prints the same list.', '']
     for node in NODE_NAMES:

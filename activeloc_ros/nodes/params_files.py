@@ -165,15 +165,11 @@ def params_file_problems(content, node: str, declared: Mapping[str, Parameter.Ty
 
 @functools.lru_cache(maxsize=None)
 def _shipped_keys() -> frozenset[str]:
-    """Every parameter set in the package's own params files: the keys a shared /**
-    section may hold for other nodes."""
-    from activeloc_ros.paths import packaged_params_files
-    keys = set()
-    for path in packaged_params_files():
-        if path.is_file():
-            for body in (load_params_file(path) or {}).values():
-                keys.update(_flatten((body or {}).get('ros__parameters') or {}))
-    return frozenset(keys)
+    """Every parameter some node of the package declares: the keys a shared /** section
+    may hold for other nodes."""
+    from activeloc_ros.graph_plan import node_params
+    from activeloc_ros.paths import NODE_NAMES
+    return frozenset(p.name for node in NODE_NAMES for p in node_params(node))
 
 
 # rclpy's own parameters of every node, which a params file may set too

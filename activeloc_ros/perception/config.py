@@ -1,7 +1,7 @@
 """Every choice of the perception model: `PerceptionConfig`, built from ROS parameters or YAML.
 
 The perception node declares one ROS parameter per field, with the field's help string
-(`perception.params.model_params`); `params/perception.yaml` repeats the defaults. What each
+(`perception.params.model_params`), so the field's default is the parameter's. What each
 default was measured against is in docs/decisions.md and docs/history.md, not in the help
 strings.
 """
