@@ -18,7 +18,7 @@ from activeloc_ros.camera_params import PARAMS
 from activeloc_ros.images import rgb_to_image_fields
 from activeloc_ros.nodes.messages import camera_info, time_from_s
 from activeloc_ros.nodes.params import declare, node_help
-from activeloc_ros.nodes.process import frame_due, run
+from activeloc_ros.nodes.process import frame_due, frames_stopped, run
 from activeloc_ros.sources import open_source, Pacer, pinhole_matrix, Playback
 
 
@@ -141,15 +141,10 @@ class CameraNode(Node):
         return super().destroy_node()
 
 
-def stop(node: CameraNode) -> None:
-    if not node.finished:
-        node.get_logger().info(f'stopped: {node.published} frames published')
-
-
 def main(args=None) -> int:
     # on_stop: a Ctrl-C or kill only ends the spin loop, so no frame is published into a
     # context that rclpy's own signal handler has already shut down
-    return run(CameraNode, args, on_stop=stop,
+    return run(CameraNode, args, on_stop=frames_stopped,
                help_text=lambda: node_help('camera_node', __doc__, PARAMS))
 
 

@@ -131,6 +131,12 @@ class Lockstep:
         self.phase = IDLE
         return 'next'
 
+    def report_missed(self, logger) -> None:
+        """Warn of the run's timeouts, by kind; nothing when there were none."""
+        if self.missed:
+            logger.warning('lockstep timeouts: ' + ', '.join(
+                f'{kind}: {n}' for kind, n in sorted(self.missed.items())))
+
 
 def recorded_poses(path: Path) -> list[tuple[float, float, float]]:
     """(t, pan, tilt) of every frame of a recorded run (``bringup --record``) with a virtual

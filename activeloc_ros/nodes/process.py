@@ -76,6 +76,13 @@ def frame_due(timer, due: float) -> bool:
     return wait <= 0
 
 
+def frames_stopped(node) -> None:
+    """on_stop of a node that publishes frames (camera, sim, tracking world): how many it
+    published, unless it had ended by itself and said so."""
+    if not node.finished:
+        node.get_logger().info(f'stopped: {node.published} frames published')
+
+
 def lean_executor(context=None):
     """A single-threaded executor with the least work per callback: rclpy's EventsExecutor
     where this rclpy has it (Jazzy's later releases), else its SingleThreadedExecutor, which

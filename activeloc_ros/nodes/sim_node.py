@@ -33,7 +33,7 @@ from activeloc_ros.nodes.masters import PublisherWatch
 from activeloc_ros.nodes.messages import (
     arm_joints_deg, camera_info, joint_state, stamp_ns, time_from_ns)
 from activeloc_ros.nodes.params import declare, node_help
-from activeloc_ros.nodes.process import frame_due, run
+from activeloc_ros.nodes.process import frame_due, frames_stopped, run
 from activeloc_ros.screen import VirtualScreen
 from activeloc_ros.settings import mapping_from, screen_from
 from activeloc_ros.sim_params import PARAMS
@@ -290,9 +290,8 @@ class SimNode(Node):
         self.finished = True
         self.timer.cancel()
         self.get_logger().info(self.playback.summary(why, self.published))
-        if self.lockstep is not None and self.lockstep.missed:
-            self.get_logger().warning('lockstep timeouts: ' + ', '.join(
-                f'{kind}: {n}' for kind, n in sorted(self.lockstep.missed.items())))
+        if self.lockstep is not None:
+            self.lockstep.report_missed(self.get_logger())
 
     def destroy_node(self):
         with self._lock:
@@ -301,13 +300,8 @@ class SimNode(Node):
         return super().destroy_node()
 
 
-def stop(node: SimNode) -> None:
-    if not node.finished:
-        node.get_logger().info(f'stopped: {node.published} frames published')
-
-
 def main(args=None) -> int:
-    return run(SimNode, args, on_stop=stop,
+    return run(SimNode, args, on_stop=frames_stopped,
                help_text=lambda: node_help('sim_node', __doc__, PARAMS))
 
 

@@ -38,7 +38,7 @@ from activeloc_ros.nodes.lockstep import ANSWER, Lockstep, moot_in_lockstep
 from activeloc_ros.nodes.masters import PublisherWatch
 from activeloc_ros.nodes.messages import camera_info, scan_message, stamp_ns, time_from_ns
 from activeloc_ros.nodes.params import declare, node_help
-from activeloc_ros.nodes.process import frame_due, run
+from activeloc_ros.nodes.process import frame_due, frames_stopped, run
 from activeloc_ros.tracking.params import PARAMS
 from activeloc_ros.tracking.world import TrackingConfig, TrackingWorld
 
@@ -249,9 +249,8 @@ class TrackingNode(Node):
         self.get_logger().info(
             f'episode over after {s.length} steps: recall {s.recall:.2f}, precision '
             f'{s.precision:.2f} (relaxed {s.precision_relaxed:.2f}), reward {s.reward:.1f}')
-        if self.lockstep is not None and self.lockstep.missed:
-            self.get_logger().warning('lockstep timeouts: ' + ', '.join(
-                f'{kind}: {n}' for kind, n in sorted(self.lockstep.missed.items())))
+        if self.lockstep is not None:
+            self.lockstep.report_missed(self.get_logger())
 
     def destroy_node(self):
         with self._lock:
@@ -260,13 +259,8 @@ class TrackingNode(Node):
         return super().destroy_node()
 
 
-def stop(node: TrackingNode) -> None:
-    if not node.finished:
-        node.get_logger().info(f'stopped: {node.published} frames published')
-
-
 def main(args=None) -> int:
-    return run(TrackingNode, args, on_stop=stop,
+    return run(TrackingNode, args, on_stop=frames_stopped,
                help_text=lambda: node_help('tracking_node', __doc__, PARAMS))
 
 
