@@ -164,7 +164,7 @@ def params_file_problems(content, node: str, declared: Mapping[str, Parameter.Ty
 
 
 @functools.lru_cache(maxsize=None)
-def _shipped_keys() -> frozenset[str]:
+def _declared_keys() -> frozenset[str]:
     """Every parameter some node of the package declares: the keys a shared /** section
     may hold for other nodes."""
     from activeloc_ros.graph_plan import node_params
@@ -189,7 +189,7 @@ def files_problems(node_name: str, params: Sequence[Param], files: Iterable[str]
             problems.append(f'{path}: cannot be read: {exc}')
             continue
         problems += [f'{path}: {p}' for p in params_file_problems(
-            content, node_name, declared, _shipped_keys())]
+            content, node_name, declared, _declared_keys())]
     return problems
 
 

@@ -16,7 +16,7 @@ skipped frames, the share of maps learnt from). A camera faster than the model m
 frames late: their map is ready only after the next frame's capture (camera_info stamps
 give the camera's period), and the model skips their optimiser step (`skip_late_updates`).
 
-    ros2 run activeloc_ros perception_node --ros-args --params-file params/robot.yaml
+    ros2 run activeloc_ros perception_node --ros-args -p encoder:=vgg19
 """
 import math
 import os
