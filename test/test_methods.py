@@ -1,5 +1,7 @@
 """The benchmarks' methods: the paper preset, params files, and the flow anchor."""
 
+import math
+
 import numpy as np
 import pytest
 
@@ -57,3 +59,12 @@ def test_flow_steers_to_what_moved():
     assert got.location is not None
     x, y = got.location
     assert 190 <= x <= 270 and 140 <= y <= 200
+
+
+def test_the_node_and_the_benchmarks_make_one_pd_law_of_the_same_settings():
+    from activeloc_ros.control.params import config_from, PARAMS, PD_PARAMS
+    values = {**{p.name: p.default for p in PARAMS},
+              'kd': 0.3, 'dead_band_deg': 1.5, 'derivative': 'error'}
+    node = config_from(values).pd
+    assert node.dead_band == pytest.approx(math.radians(1.5))
+    assert methods.controller_for('ours', {k: values[k] for k in PD_PARAMS}).pd == node

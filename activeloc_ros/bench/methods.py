@@ -8,13 +8,13 @@ model method a ROS 2 params file's perception and controller sections, as bringu
 """
 import dataclasses
 import functools
-import math
 from pathlib import Path
 
 from activeloc_ros.bench.pointers import (
     ABLATIONS, CentrePointer, FlowPointer, FrameDiffPointer, ModelPointer, Mog2Pointer,
     OraclePointer, RandomPointer, TrackerMethod)
 from activeloc_ros.control import ControllerConfig, PD_VARIANTS, PDConfig
+from activeloc_ros.control.params import pd_from, PD_PARAMS
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.paths import share_path
 from activeloc_ros.screen import VirtualScreen
@@ -69,23 +69,16 @@ def make_pointer(name: str, settings: dict, seed: int, *, tracker_start: str = '
     return ModelPointer(name, {'seed': seed, **settings, **overrides})
 
 
-PD_OPTIONS = ('kp', 'kd', 'dead_band_deg', 'derivative', 'derivative_tau')
 CONTROL_OPTIONS = ('settle_time', 'watchdog_timeout', 'step_delay_ms', 'min_peak',
                    'pan_limit_deg', 'tilt_limit_deg', 'confirm_deg')
 
 
 def method_pd(name: str, control: dict) -> PDConfig:
     """The PD law of a method: its Table 3 variant's gains (whatever --control says of kp and
-    kd), else the default's, with the `PD_OPTIONS` among the --control settings: the
+    kd), else the default's, with the `PD_PARAMS` among the --control settings: the
     controller node's names and units (``dead_band_deg`` in degrees)."""
     variant = method_parts(name)[1] if name in MODEL_METHODS else None
-    pd_options = {k: v for k, v in control.items() if k in PD_OPTIONS}
-    if 'dead_band_deg' in pd_options:
-        pd_options['dead_band'] = math.radians(pd_options.pop('dead_band_deg'))
-    if variant:
-        return PDConfig.variant(variant, **{k: v for k, v in pd_options.items()
-                                            if k not in ('kp', 'kd')})
-    return PDConfig(**pd_options)
+    return pd_from(control, variant or '')
 
 
 def controller_for(name: str, control: dict, screen: VirtualScreen | None = None
@@ -93,10 +86,10 @@ def controller_for(name: str, control: dict, screen: VirtualScreen | None = None
     """The controller of a method: its PD variant plus the --control settings; with a
     `screen`, aimed no farther than its view stays on the screen (unless set; the
     `--aim-limits screen` rig)."""
-    unknown = sorted(set(control) - set(PD_OPTIONS) - set(CONTROL_OPTIONS))
+    unknown = sorted(set(control) - set(PD_PARAMS) - set(CONTROL_OPTIONS))
     if unknown:
         raise ConfigError(f'unknown --control settings {unknown}; known: '
-                          f'{", ".join(PD_OPTIONS + CONTROL_OPTIONS)}')
+                          f'{", ".join(PD_PARAMS + CONTROL_OPTIONS)}')
     if name in PRESETS:
         control = {**params_file(share_path(PRESETS[name]))[1], **control}
     pd = method_pd(name, control)
@@ -118,7 +111,7 @@ def control_from_node(values: dict) -> dict:
     """The controller node's parameter values as the benchmarks' --control settings: the
     PD law's and the arm's, under the same names; the base's and the node's own parameters
     have no place on the screen."""
-    return {k: v for k, v in values.items() if k in PD_OPTIONS + CONTROL_OPTIONS}
+    return {k: v for k, v in values.items() if k in PD_PARAMS + CONTROL_OPTIONS}
 
 
 def params_file(path: str | Path) -> tuple[dict, dict]:

@@ -31,7 +31,7 @@ from activeloc_ros.bench import (
     run_jobs)
 from activeloc_ros.bench.methods import (
     CONTROL_OPTIONS, controller_for, make_pointer, METHODS, MODEL_METHODS, params_file,
-    PD_OPTIONS)
+    PD_PARAMS)
 from activeloc_ros.bench.pointers import ModelPointer
 from activeloc_ros.bench.time_plots import time_plots
 from activeloc_ros.bench.video import (
@@ -341,7 +341,7 @@ def parser() -> argparse.ArgumentParser:
                    help='ScreenConfig fields, e.g. view_fraction=0.3 width=640 height=480')
     p.add_argument('--control', nargs='+', action='extend', metavar='KEY=VALUE', default=[],
                    help='controller settings for every method: ' + ', '.join(
-                       PD_OPTIONS + CONTROL_OPTIONS) + " (the controller node's names and "
+                       PD_PARAMS + CONTROL_OPTIONS) + " (the controller node's names and "
                    'units; kp and kd '
                    "leave an ours-pd-* variant's gains; derivative=error is the paper's "
                    'literal PD)')

@@ -42,7 +42,7 @@ from activeloc_ros.bench import (
     check_seed, in_threads, key_values, names, output_dir, run_jobs)
 from activeloc_ros.bench import methods
 from activeloc_ros.bench.methods import (
-    method_pd, PD_OPTIONS, TABLE3_METHODS as MODEL_METHODS, TRACKER_METHODS)
+    method_pd, PD_PARAMS, TABLE3_METHODS as MODEL_METHODS, TRACKER_METHODS)
 from activeloc_ros.bench.tracking_video import TrackingVideo
 from activeloc_ros.bench.video import commit_video, discard_videos
 from activeloc_ros.closed_loop import MODES, Pointing, run_episode
@@ -70,10 +70,10 @@ PAPER_OURS = {'snow': (0.68, 0.16, 0.36), 'room': (0.85, 0.26, 0.41),
 def base_config(method: str, control: dict) -> BaseConfig:
     """The base controller of a method: its PD variant plus the --control settings."""
     known = set(BaseConfig.__dataclass_fields__) - {'pd'}
-    unknown = sorted(set(control) - known - set(PD_OPTIONS))
+    unknown = sorted(set(control) - known - set(PD_PARAMS))
     if unknown:
         raise ConfigError(f'unknown --control settings {unknown}; known: '
-                          f'{", ".join(sorted(known | set(PD_OPTIONS)))}')
+                          f'{", ".join(sorted(known | set(PD_PARAMS)))}')
     pd = method_pd(method, {'dead_band_deg': math.degrees(BASE_DEAD_BAND), **control})
     return BaseConfig(pd=pd, **{k: v for k, v in control.items() if k in known})
 
@@ -364,7 +364,7 @@ def parser() -> argparse.ArgumentParser:
                    help='TrackingConfig fields, e.g. max_steps=200 lost_steps=20')
     p.add_argument('--control', nargs='+', action='extend', metavar='KEY=VALUE', default=[],
                    help='base controller settings for every method (BaseConfig fields and '
-                        + ', '.join(PD_OPTIONS) + '), e.g. pace=0.8')
+                        + ', '.join(PD_PARAMS) + '), e.g. pace=0.8')
     p.add_argument('--set', nargs='+', action='extend', metavar='KEY=VALUE', default=[],
                    help='PerceptionConfig fields for every model method, e.g. lr=1e-4')
     p.add_argument('--jobs', type=int, default=min(2, os.cpu_count() or 1), metavar='N',

@@ -82,16 +82,26 @@ PARAMS = (
 )
 
 
+# the PD law's settings, in the node's names and units (the dead band in degrees)
+PD_PARAMS = ('kp', 'kd', 'dead_band_deg', 'derivative', 'derivative_tau')
+
+
+def pd_from(settings: dict, variant: str = '') -> PDConfig:
+    """The PD law from those of `PD_PARAMS` that ``settings`` holds (the core's defaults for
+    the rest): a Table 3 ``variant``'s gains, whatever kp and kd say, else kp and kd."""
+    options = {name: settings[name] for name in PD_PARAMS if name in settings}
+    if 'dead_band_deg' in options:
+        options['dead_band'] = math.radians(options.pop('dead_band_deg'))
+    if variant:
+        return PDConfig.variant(variant, **{k: v for k, v in options.items()
+                                            if k not in ('kp', 'kd')})
+    return PDConfig(**options)
+
+
 def config_from(values: dict) -> ControllerConfig:
     """The core's config from validated parameter values (raises ConfigError)."""
-    pd_options = {'dead_band': math.radians(values['dead_band_deg']),
-                  'derivative': values['derivative'],
-                  'derivative_tau': values['derivative_tau']}
-    if values['pd_variant']:
-        pd = PDConfig.variant(values['pd_variant'], **pd_options)
-    else:
-        pd = PDConfig(kp=values['kp'], kd=values['kd'], **pd_options)
-    return ControllerConfig(pd=pd, mapping=mapping_from(values),
+    return ControllerConfig(pd=pd_from(values, values['pd_variant']),
+                            mapping=mapping_from(values),
                             watchdog_timeout=values['watchdog_timeout'],
                             step_delay_ms=values['step_delay_ms'], min_peak=values['min_peak'],
                             settle_time=values['settle_time'],
