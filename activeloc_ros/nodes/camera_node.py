@@ -15,8 +15,8 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 
 from activeloc_ros.camera_params import PARAMS
-from activeloc_ros.images import rgb_to_image_fields
-from activeloc_ros.nodes.messages import camera_info, time_from_s
+from activeloc_ros.nodes.frames import images_heard, may_start, publish_frame
+from activeloc_ros.nodes.messages import time_from_s
 from activeloc_ros.nodes.params import declare, node_help
 from activeloc_ros.nodes.process import frame_due, frames_stopped, run
 from activeloc_ros.sources import open_source, Pacer, pinhole_matrix, Playback
@@ -90,35 +90,17 @@ class CameraNode(Node):
         if self.params['max_frames'] and self.published >= self.params['max_frames']:
             self._finish('max_frames reached')
 
-    def _image_subscribers(self) -> bool:
-        return self.image_pub.get_subscription_count() >= self.params['min_subscribers']
-
     def _subscriber_ready(self) -> bool:
-        if self._image_subscribers():
-            self.get_logger().info('a subscriber is listening: replay starts')
-        elif time.monotonic() - self.started_at > self.params['wait_for_subscriber']:
-            self.get_logger().warning('no subscriber after '
-                                      f'{self.params["wait_for_subscriber"]:g} s: replay starts')
-        else:
-            return False
-        self.waiting = False
-        return True
+        return may_start(self, images_heard(self), 'a subscriber is listening', 'replay starts')
 
     def publish(self, frame) -> None:
-        height, width = frame.rgb.shape[:2]
         stamp = (self.get_clock().now().to_msg() if self.params['restamp']
                  else time_from_s(frame.stamp))
-        image = Image(**rgb_to_image_fields(frame.rgb, self.params['encoding']))
-        image.header.stamp = stamp
-        image.header.frame_id = self.params['frame_id']
-        self.image_pub.publish(image)
         k = self.source.camera_matrix()
         if k is None:
+            height, width = frame.rgb.shape[:2]
             k = pinhole_matrix(width, height, self.params['hfov_deg'])
-        self.info_pub.publish(camera_info(k, width, height, image.header))
-        self.published += 1
-        if self.published == 1:
-            self.get_logger().info(f'first frame published ({width}x{height})')
+        publish_frame(self, frame.rgb, stamp, k)
 
     def _end_of_stream(self) -> None:
         self.failure = self.playback.ended(self.published)

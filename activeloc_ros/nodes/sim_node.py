@@ -27,11 +27,12 @@ from sensor_msgs.msg import CameraInfo, Image, JointState
 from activeloc_ros.control.braccio import clamp_text, clamp_to_limits, refusal_text
 from activeloc_ros.data import FrameTruth
 from activeloc_ros.errors import ConfigError
-from activeloc_ros.images import rgb_to_image_fields
+from activeloc_ros.nodes.frames import (
+    images_heard, lockstep_graph_up, may_start, publish_frame)
 from activeloc_ros.nodes.lockstep import Lockstep, moot_in_lockstep, time_ns
 from activeloc_ros.nodes.masters import PublisherWatch
 from activeloc_ros.nodes.messages import (
-    arm_joints_deg, camera_info, joint_state, stamp_ns, time_from_ns)
+    arm_joints_deg, joint_state, stamp_ns, time_from_ns)
 from activeloc_ros.nodes.params import declare, node_help
 from activeloc_ros.nodes.process import frame_due, frames_stopped, run
 from activeloc_ros.screen import VirtualScreen
@@ -241,41 +242,16 @@ class SimNode(Node):
     def publish(self, stamp) -> None:
         """Render the shown frame from the arm's pose now and publish it, stamped ``stamp``."""
         view = self.world.observe()
-        height, width = view.rgb.shape[:2]
-        image = Image(**rgb_to_image_fields(view.rgb, self.params['encoding']))
-        image.header.stamp = stamp
-        image.header.frame_id = self.params['frame_id']
-        self.image_pub.publish(image)
-        self.info_pub.publish(camera_info(self.world.screen.K, width, height, image.header))
-        self.pose_pub.publish(JointState(header=image.header, name=['pan', 'tilt'],
+        header = publish_frame(self, view.rgb, stamp, self.world.screen.K)
+        self.pose_pub.publish(JointState(header=header, name=['pan', 'tilt'],
                                          position=[view.pan, view.tilt]))
-        self.published += 1
-        if self.published == 1:
-            self.get_logger().info(f'first frame published ({width}x{height})')
-
-    def _graph_ready(self) -> bool:
-        """Lockstep needs perception and the controller before the first frame."""
-        return (self._image_subscribers()
-                and self.command_sub.get_publisher_count() > 0
-                and self.ignored_sub.get_publisher_count() > 0
-                and self.location_sub.get_publisher_count() > 0)
-
-    def _image_subscribers(self) -> bool:
-        return self.image_pub.get_subscription_count() >= self.params['min_subscribers']
 
     def _subscriber_ready(self) -> bool:
-        if self.lockstep is not None and self._graph_ready():
-            self.get_logger().info('perception and controller are up: lockstep starts')
-        elif self.lockstep is None and self._image_subscribers():
-            self.get_logger().info('a subscriber is listening: the scene starts')
-        elif time.monotonic() - self.started_at > self.params['wait_for_subscriber']:
-            self.get_logger().warning('no subscriber after '
-                                      f'{self.params["wait_for_subscriber"]:g} s: the scene '
-                                      'starts')
-        else:
-            return False
-        self.waiting = False
-        return True
+        if self.lockstep is not None:
+            return may_start(self, lockstep_graph_up(self), 'perception and controller are up',
+                             'lockstep starts')
+        return may_start(self, images_heard(self), 'a subscriber is listening',
+                         'the scene starts')
 
     def _end_of_stream(self) -> None:
         self.failure = self.playback.ended(self.published)

@@ -33,10 +33,11 @@ from std_msgs.msg import Header
 
 from activeloc_ros.control.base import Twist as BaseTwist
 from activeloc_ros.errors import ConfigError
-from activeloc_ros.images import rgb_to_image_fields
+from activeloc_ros.nodes.frames import (
+    images_heard, lockstep_graph_up, may_start, publish_frame)
 from activeloc_ros.nodes.lockstep import ANSWER, Lockstep, moot_in_lockstep
 from activeloc_ros.nodes.masters import PublisherWatch
-from activeloc_ros.nodes.messages import camera_info, scan_message, stamp_ns, time_from_ns
+from activeloc_ros.nodes.messages import scan_message, stamp_ns, time_from_ns
 from activeloc_ros.nodes.params import declare, node_help
 from activeloc_ros.nodes.process import frame_due, frames_stopped, run
 from activeloc_ros.tracking.params import PARAMS
@@ -206,39 +207,17 @@ class TrackingNode(Node):
     def publish(self, stamp) -> None:
         """Render the camera's view now and publish it with the target's true position."""
         view = self.world.observe()
-        height, width = view.rgb.shape[:2]
-        image = Image(**rgb_to_image_fields(view.rgb, self.params['encoding']))
-        image.header.stamp = stamp
-        image.header.frame_id = self.params['frame_id']
-        self.image_pub.publish(image)
-        self.info_pub.publish(camera_info(self.world.intrinsics.matrix, width, height,
-                                          image.header))
+        publish_frame(self, view.rgb, stamp, self.world.intrinsics.matrix)
         target = PointStamped()
         target.header.stamp = stamp
         target.header.frame_id = self.params['world_frame']
         target.point.x, target.point.y = self.world.target.x, self.world.target.y
         self.target_pub.publish(target)
-        self.published += 1
-        if self.published == 1:
-            self.get_logger().info(f'first frame published ({width}x{height})')
 
     def _ready(self) -> bool:
-        images = self.image_pub.get_subscription_count() >= self.params['min_subscribers']
-        if self.lockstep is not None:
-            ready = (images and self.command_sub.get_publisher_count() > 0
-                     and self.ignored_sub.get_publisher_count() > 0
-                     and self.location_sub.get_publisher_count() > 0)
-        else:
-            ready = images
-        if ready:
-            self.get_logger().info('the graph is up: the episode starts')
-        elif time.monotonic() - self.started_at > self.params['wait_for_subscriber']:
-            self.get_logger().warning(f'no subscriber after '
-                                      f'{self.params["wait_for_subscriber"]:g} s: the episode '
-                                      'starts')
-        else:
+        ready = (images_heard(self) if self.lockstep is None else lockstep_graph_up(self))
+        if not may_start(self, ready, 'the graph is up', 'the episode starts'):
             return False
-        self.waiting = False
         self.started_at = time.monotonic()
         return True
 
