@@ -23,7 +23,8 @@ def test_the_paper_preset_is_the_papers_choices():
 
 def test_settings_given_win_over_the_preset():
     assert methods.controller_for('ours-paper', {'kd': 0.0}).pd.kd == 0.0
-    assert methods.controller_for('ours', {}).pd.kd == 0.0     # the default's own gains
+    assert methods.controller_for('ours-paper', {'settle_time': 0.3}).settle_time == 0.3
+    assert methods.controller_for('ours', {}).settle_time == 0.3     # the default's own
 
 
 def test_a_params_file_gives_perception_and_controller(tmp_path):
@@ -68,3 +69,15 @@ def test_the_node_and_the_benchmarks_make_one_pd_law_of_the_same_settings():
     node = config_from(values).pd
     assert node.dead_band == pytest.approx(math.radians(1.5))
     assert methods.controller_for('ours', {k: values[k] for k in PD_PARAMS}).pd == node
+
+
+def test_the_arm_takes_the_papers_pd_law_and_a_base_keeps_its_own():
+    from activeloc_ros.control.params import base_config_from, config_from, PARAMS, unread
+    values = {p.name: p.default for p in PARAMS}
+    arm = config_from(values).pd
+    assert (arm.kp, arm.kd, arm.derivative, arm.dead_band) == (1.0, 0.1, 'error', 0.0)
+    base = base_config_from(values).pd
+    assert (base.kp, base.kd, base.derivative) == (1.0, 0.0, 'target')
+    assert base.dead_band == pytest.approx(math.radians(2.0))
+    assert base_config_from({**values, 'pd_variant': 'paper'}).pd.kd == 0.1
+    assert {'kd', 'derivative', 'dead_band_deg'} <= set(unread('base'))

@@ -156,7 +156,8 @@ def test_oracle_follows_the_walker_and_centre_loses_it(tmp_path):
     oracle = episode(seq, OraclePointer()).summary()
     centre = episode(seq, CentrePointer()).summary()
     assert oracle['scored'] == 40 and oracle['processed'] == 40
-    assert oracle['aae_deg'] < 10.0 < 20.0 < centre['aae_deg']   # it starts 40 deg away
+    # it starts 40 deg away; the paper's PD (kd 0.1 on the error) lags it by about 10 deg
+    assert oracle['aae_deg'] < 12.0 < 20.0 < centre['aae_deg']
     assert oracle['in_view'] >= 0.9 > 0.6 > centre['in_view']
     assert oracle['auc_judd'] > 0.9 > centre['auc_judd']
 
@@ -376,8 +377,9 @@ def test_an_out_folder_that_cannot_be_made_fails_before_the_run(tmp_path, capsys
 def test_control_kp_and_kd_set_the_gains_of_every_method_but_a_pd_variant():
     assert bench.controller_for('ours', {'kp': 0.5, 'kd': 0.2}).pd.kp == 0.5
     assert bench.controller_for('oracle', {'kd': 0.2}).pd.kd == 0.2
-    paper = bench.controller_for('ours-pd-paper', {'kp': 0.5, 'dead_band_deg': 1.0}).pd
-    assert (paper.kp, paper.kd, paper.dead_band) == (1.0, 0.1, pytest.approx(math.radians(1.0)))
+    high_d = bench.controller_for('ours-pd-high_d', {'kp': 0.5, 'dead_band_deg': 1.0}).pd
+    assert (high_d.kp, high_d.kd, high_d.dead_band) == (1.0, 1.0,
+                                                        pytest.approx(math.radians(1.0)))
     with pytest.raises(ConfigError, match='kp'):
         bench.controller_for('ours', {'kp': -1.0})
 
@@ -403,10 +405,13 @@ def test_ours_does_not_follow_a_passing_car_off_the_screen(data_root, tmp_path, 
     """Regression on real frames, the faithful rig: on otb_crossing the argmax cell of the
     map followed a passing car and then the screen's edge, out to the wall (in view 53%,
     AAE 42.6 deg; a camera that never moves: 23.4 deg). The centroid of the cells near
-    the peak stays with the scene (in view 100%, 13.4-15.8 deg over 3 seeds)."""
+    the peak stays with the scene (in view 100%, 13.4-15.8 deg over 3 seeds). The PD law is
+    pinned to kd 0 on the action's direction, the law this guard was set with: the paper's
+    kd 0.1 on the error, the default since, loses the crossing by itself (docs/decisions.md,
+    38.7 deg on seed 0)."""
     assert bench.main(['--data', str(data_root), '--sequences', 'otb_crossing', '--methods',
-                       'ours', '--jobs', '1', '--json', '--no-video', '--quiet', '--out',
-                       str(tmp_path)]) == 0
+                       'ours', '--control', 'kd=0', 'derivative=target', '--jobs', '1',
+                       '--json', '--no-video', '--quiet', '--out', str(tmp_path)]) == 0
     row = json.loads(capsys.readouterr().out.splitlines()[0])
     result = row['sequences']['otb_crossing']
     assert result['in_view'] >= 0.9 and result['aae_deg'] < 23.0, result

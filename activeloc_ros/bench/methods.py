@@ -77,8 +77,7 @@ def method_pd(name: str, control: dict) -> PDConfig:
     """The PD law of a method: its Table 3 variant's gains (whatever --control says of kp and
     kd), else the default's, with the `PD_PARAMS` among the --control settings: the
     controller node's names and units (``dead_band_deg`` in degrees)."""
-    variant = method_parts(name)[1] if name in MODEL_METHODS else None
-    return pd_from(control, variant or '')
+    return pd_from(control, name[len('ours-pd-'):] if name.startswith('ours-pd-') else '')
 
 
 def controller_for(name: str, control: dict, screen: VirtualScreen | None = None

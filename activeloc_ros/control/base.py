@@ -52,6 +52,9 @@ FORWARD_RULES = ('ground', 'size', 'constant', 'none')
 ACTION_SETS = ('continuous', 'discrete')
 # the base's dead band, its own since the arm's returned to the paper's 0
 BASE_DEAD_BAND = math.radians(2.0)
+# the base's PD law, its own since the arm's returned to the paper's kd 0.1 on the error:
+# no derivative (on the action's direction, were one set), the 2 deg dead band
+BASE_PD = PDConfig(kd=0.0, derivative='target', dead_band=BASE_DEAD_BAND)
 
 
 @dataclass(frozen=True)
@@ -104,8 +107,8 @@ class BaseConfig:
     :param max_reverse: top backward speed (m/s) when the target is nearer than
         ``distance``; 0: never back away (AD-VAT's action set has a backward action).
     :param min_peak: as the arm controller's: a weaker map carries no information. The
-        base keeps 0.0102 and a 2 deg dead band (`BASE_DEAD_BAND`) where the arm returned
-        to the paper's 0: only the tracking benchmark judges the base's.
+        base keeps 0.0102, a 2 deg dead band and kd 0 (`BASE_PD`) where the arm returned
+        to the paper's values: only the tracking benchmark judges the base's.
     :param discrete_speed: forward speed (m/s) of AD-VAT's moving actions.
     :param discrete_turn_deg_s: turn rate of its turning actions.
     :param avoid: go round obstacles the range scan shows (needs scans: `observe_scan`).
@@ -116,7 +119,7 @@ class BaseConfig:
         round an obstacle (the camera sees 45 deg each side).
     """
 
-    pd: PDConfig = field(default_factory=lambda: PDConfig(dead_band=BASE_DEAD_BAND))
+    pd: PDConfig = field(default_factory=lambda: BASE_PD)
     step: float = 0.1
     max_speed: float = 2.0
     max_turn_deg_s: float = 90.0

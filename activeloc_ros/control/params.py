@@ -1,11 +1,10 @@
 """The controller node's parameters and the controller configs made from their values,
 ROS-free: the node declares them, bringup checks them before any node starts, and the
 benchmarks read them."""
-import dataclasses
 import math
 
 from activeloc_ros.checks import in_range, non_negative, one_of, Param, positive
-from activeloc_ros.control.base import ACTION_SETS, BASE_DEAD_BAND, BaseConfig, FORWARD_RULES
+from activeloc_ros.control.base import ACTION_SETS, BASE_PD, BaseConfig, FORWARD_RULES
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.control.pd import DERIVATIVE_MODES, PD_VARIANTS, PDConfig
 from activeloc_ros.control.reactive import ControllerConfig
@@ -21,10 +20,11 @@ PARAMS = (
           + ', '.join(f'{k}={v}' for k, v in PD_VARIANTS.items()) + '; empty uses kp/kd',
           one_of('', *PD_VARIANTS)),
     Param('kp', PDConfig.kp, 'lambda_p of Eq. 4', non_negative),
-    Param('kd', PDConfig.kd, 'lambda_d of Eq. 4, seconds (paper 0.1)', non_negative),
+    Param('kd', PDConfig.kd, "The arm's: lambda_d of Eq. 4, seconds (the paper's 0.1; a "
+          'base keeps its own 0)', non_negative),
     Param('derivative', PDConfig.derivative,
-          "'target': d/dt of the action's direction (default: stable at 10 frames/s); "
-          "'error': d/dt of the camera-frame error, as printed in the paper",
+          "The arm's: 'error': d/dt of the camera-frame error, as printed in the paper; "
+          "'target': d/dt of the action's direction (a base keeps its own 'target')",
           one_of(*DERIVATIVE_MODES)),
     Param('derivative_tau', PDConfig.derivative_tau,
           'Low-pass time constant on the derivative, s (0: off)', non_negative),
@@ -84,6 +84,10 @@ PARAMS = (
 
 # the PD law's settings, in the node's names and units (the dead band in degrees)
 PD_PARAMS = ('kp', 'kd', 'dead_band_deg', 'derivative', 'derivative_tau')
+# the base's own values of the arm's PD settings (kp, derivative_tau and pd_variant are
+# both's)
+BASE_PD_SETTINGS = {'kd': BASE_PD.kd, 'derivative': BASE_PD.derivative,
+                    'dead_band_deg': math.degrees(BASE_PD.dead_band)}
 
 
 def pd_from(settings: dict, variant: str = '') -> PDConfig:
@@ -116,7 +120,7 @@ BASE_PARAMS = ('forward', 'distance', 'distance_gain', 'pace', 'max_speed', 'max
 # the settings only the arm's controller reads (its joint mapping and servo speed are
 # read-only besides)
 ARM_PARAMS = ('settle_time', 'confirm_deg', 'pan_limit_deg', 'tilt_limit_deg', 'step_delay_ms',
-              'dead_band_deg', 'min_peak', *(p.name for p in MAPPING_PARAMS))
+              'min_peak', *BASE_PD_SETTINGS, *(p.name for p in MAPPING_PARAMS))
 
 
 def unread(actuator: str) -> tuple[str, ...]:
@@ -132,11 +136,12 @@ def unread_reason(actuator: str, count: int = 1) -> str:
 
 def base_config_from(values: dict) -> BaseConfig:
     """The base controller's config from validated parameter values (raises ConfigError):
-    the PD gains and watchdog the arm's would have, its own dead band and information rule
-    (those parameters are the arm's), and the base's own settings."""
-    arm = config_from(values)
-    return BaseConfig(pd=dataclasses.replace(arm.pd, dead_band=BASE_DEAD_BAND),
-                      watchdog_timeout=arm.watchdog_timeout,
+    kp (or a PD variant's gains) and the watchdog the arm's would have, its own kd,
+    derivative, dead band and information rule (those parameters are the arm's), and the
+    base's own settings."""
+    settings = {**values, **BASE_PD_SETTINGS}
+    return BaseConfig(pd=pd_from(settings, values['pd_variant']),
+                      watchdog_timeout=values['watchdog_timeout'],
                       **{name: values[name] for name in BASE_PARAMS})
 
 
