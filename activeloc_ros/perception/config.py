@@ -112,10 +112,11 @@ class PerceptionConfig:
         1.0, 'motion scale s of the sigmoid weightings (paper: 1), for frames motion_period '
         'apart', above(0.0))
     motion_period: float = _param(
-        0.1, 'seconds between compared frames (their capture stamps) at which motion_scale '
+        0.0, 'seconds between compared frames (their capture stamps) at which motion_scale '
         'and image_motion_scale hold; frames closer together or farther apart scale both '
         'by (gap / motion_period) ** motion_gap_power, within 1/4 to 4 times, because a '
-        'picture changes less in less time; 0 = fixed scales at any frame rate (paper)',
+        'picture changes less in less time (0.1 was no better on the synthetic set, '
+        'docs/decisions.md); 0 = fixed scales at any frame rate (paper, default)',
         at_least(0.0))
     motion_gap_power: float = _param(
         0.5, 'how the motion scales grow with the time between frames: 1 = in proportion '

@@ -26,8 +26,8 @@ Which computation happens when (one frame per `step`, t the new frame):
 
 Losses (`loss_reduction='mean'`, the default; N cells, C channels; f are the encoder's
 features, each frame divided by its RMS under the default `feature_norm='frame_rms'`):
-    w        = motion weight of (f_t - f_{t-1}), detached (a weight, not a target), its
-               scale growing with the time between the two frames (`motion_period`)
+    w        = motion weight of (f_t - f_{t-1}), detached (a weight, not a target); with
+               `motion_period` > 0 its scale grows with the time between the two frames
     E        = w * (f_t - fhat_t)^2                                  # (N, C)
     L_global = mean over N*C of E            ('sum': sum over N*C)
     e        = mean over C of E; map = softmax over the N cells of e / map_temperature
