@@ -196,7 +196,8 @@ class PerceptionConfig:
         "the perception node's pipeline: true learns from every frame", at_least(0))
     update_encoder: bool = _param(
         False, 'also train the encoder online (paper: True; it costs 2 encoder backward '
-        'passes per frame)')
+        'passes per frame, each map about 4.75 times dearer, and made no difference on the '
+        'real set, docs/decisions.md)')
     encoder_grad: str = _param(
         'both', 'with update_encoder, the encoder gradient flows through both the '
         "predictor's input and the target (exact; re-encodes the previous frame) or through "
