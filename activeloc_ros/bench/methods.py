@@ -23,10 +23,16 @@ from activeloc_ros.screen import VirtualScreen
 PRESETS = {'ours-paper': 'params/paper.yaml'}
 
 TRACKER_METHODS = ('tld', 'mil', 'mosse', 'kcf', 'csrt')
-# the model's rows of the paper's Table 3 (the perception's ablations, then the PD variants)
-TABLE3_METHODS = ('ours', *(f'ours-{a}' for a in ABLATIONS if a != 'full'),
-                  *(f'ours-pd-{v}' for v, gains in PD_VARIANTS.items()
-                    if gains != (PDConfig.kp, PDConfig.kd)))
+
+
+def table3_methods(pd: PDConfig) -> tuple[str, ...]:
+    """The model's rows of the paper's Table 3 for a controller whose own law is ``pd``: the
+    perception's ablations, then the PD variants whose gains differ from its own."""
+    return ('ours', *(f'ours-{a}' for a in ABLATIONS if a != 'full'),
+            *(f'ours-pd-{v}' for v, gains in PD_VARIANTS.items() if gains != (pd.kp, pd.kd)))
+
+
+TABLE3_METHODS = table3_methods(PDConfig())
 MODEL_METHODS = (*TABLE3_METHODS, *PRESETS)
 MOTION_METHODS = ('framediff', 'mog2', 'flow')   # unsupervised anchors on the picture's change
 METHODS = (*MODEL_METHODS, 'random', 'centre', 'oracle', *MOTION_METHODS, *TRACKER_METHODS)
@@ -39,8 +45,8 @@ def method_parts(name: str) -> tuple[dict, str | None]:
         return {}, None
     if name in PRESETS:
         return params_file(share_path(PRESETS[name]))[0], None
-    if name.startswith('ours-pd-') and name[8:] in PD_VARIANTS:
-        return {}, name[8:]
+    if _pd_variant(name) in PD_VARIANTS:
+        return {}, _pd_variant(name)
     if name.startswith('ours-') and name[5:] in ABLATIONS:
         return dict(ABLATIONS[name[5:]]), None
     raise ConfigError(f'unknown method {name!r}; known: {", ".join(METHODS)}')
@@ -77,7 +83,12 @@ def method_pd(name: str, control: dict) -> PDConfig:
     """The PD law of a method: its Table 3 variant's gains (whatever --control says of kp and
     kd), else the default's, with the `PD_PARAMS` among the --control settings: the
     controller node's names and units (``dead_band_deg`` in degrees)."""
-    return pd_from(control, name[len('ours-pd-'):] if name.startswith('ours-pd-') else '')
+    return pd_from(control, _pd_variant(name))
+
+
+def _pd_variant(name: str) -> str:
+    """The PD variant an ``ours-pd-VARIANT`` method names ('' for any other)."""
+    return name[len('ours-pd-'):] if name.startswith('ours-pd-') else ''
 
 
 def controller_for(name: str, control: dict, screen: VirtualScreen | None = None

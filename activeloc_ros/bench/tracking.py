@@ -42,11 +42,10 @@ from activeloc_ros.bench import (
     check_seed, in_threads, key_values, names, output_dir, run_jobs)
 from activeloc_ros.bench import methods
 from activeloc_ros.bench.methods import (
-    method_pd, PD_PARAMS, TABLE3_METHODS, TRACKER_METHODS)
+    method_pd, PD_PARAMS, table3_methods, TRACKER_METHODS)
 from activeloc_ros.bench.tracking_video import TrackingVideo
 from activeloc_ros.bench.video import commit_video, discard_videos
 from activeloc_ros.closed_loop import MODES, Pointing, run_episode
-from activeloc_ros.control import PD_VARIANTS
 from activeloc_ros.control.base import BASE_PD, BaseConfig, BaseController, FORWARD_RULES
 from activeloc_ros.control.params import BASE_PD_SETTINGS
 from activeloc_ros.data import Box
@@ -56,10 +55,7 @@ from activeloc_ros.progress import Progress
 from activeloc_ros.tracking.reward import LOST_CAUSES
 from activeloc_ros.tracking.scenes import PAPER_NAMES, SCENES
 
-# Table 3's rows on the base: its PD variants are those that differ from the base's own law
-MODEL_METHODS = (*(m for m in TABLE3_METHODS if not m.startswith('ours-pd-')),
-                 *(f'ours-pd-{v}' for v, gains in PD_VARIANTS.items()
-                   if gains != (BASE_PD.kp, BASE_PD.kd)))
+MODEL_METHODS = table3_methods(BASE_PD)       # on the base, whose PD law is its own
 METHODS = (*MODEL_METHODS, 'random', 'oracle', *TRACKER_METHODS)
 MAIN_METHODS = ('ours', *TRACKER_METHODS, 'random', 'oracle')
 ABLATION_METHODS = tuple(m for m in MODEL_METHODS if m != 'ours')

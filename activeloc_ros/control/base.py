@@ -50,11 +50,9 @@ from activeloc_ros.errors import ConfigError
 
 FORWARD_RULES = ('ground', 'size', 'constant', 'none')
 ACTION_SETS = ('continuous', 'discrete')
-# the base's dead band, its own since the arm's returned to the paper's 0
-BASE_DEAD_BAND = math.radians(2.0)
-# the base's PD law, its own since the arm's returned to the paper's kd 0.1 on the error:
-# no derivative (on the action's direction, were one set), the 2 deg dead band
-BASE_PD = PDConfig(kd=0.0, derivative='target', dead_band=BASE_DEAD_BAND)
+# the base's PD law, its own since the arm's returned to the paper's (kd 0.1 on the error,
+# no dead band): no derivative (on the action's direction, were one set), a 2 deg dead band
+BASE_PD = PDConfig(kd=0.0, derivative='target', dead_band=math.radians(2.0))
 
 
 @dataclass(frozen=True)

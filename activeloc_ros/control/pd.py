@@ -36,7 +36,7 @@ class PDConfig:
         camera is on target: no new motion (see ``within_dead_band``). It gates the output
         instead of zeroing the error, so the derivative never sees a jump at its edge.
         0 (the paper's): 2 deg was no better on the static sequences (docs/decisions.md);
-        the tracking base keeps its own (`base.BASE_DEAD_BAND`).
+        the tracking base keeps its own (`base.BASE_PD`).
     :param derivative: ``'error'`` (default) differentiates the camera-frame error, as
         printed in the paper; ``'target'`` differentiates the action's direction (camera
         pose + error), a feed-forward of the action's motion (the tracking base's). The
