@@ -1,16 +1,25 @@
 """What the three nodes that publish camera frames (camera, sim, tracking) do alike: publish
-a picture with its camera info, and hold the first one back until its readers are up.
+a picture with its camera info, hold the first one back until its readers are up, and, for
+the two worlds, wire lockstep's clock and answers.
 
 Each node has ``params`` (``encoding``, ``frame_id``, ``min_subscribers``,
-``wait_for_subscriber``), ``image_pub``, ``info_pub``, ``published``, ``started_at`` and
-``waiting``; in lockstep also ``command_sub``, ``location_sub`` and ``ignored_sub``.
+``wait_for_subscriber``; a world also ``lockstep_timeout`` and
+``lockstep_command_timeout``), ``image_pub``, ``info_pub``, ``published``, ``started_at``
+and ``waiting``; a world also ``_lock`` and ``command_sub``.
 """
 import time
 
+from geometry_msgs.msg import PointStamped
+from rclpy.qos import (
+    qos_check_compatible, QoSCompatibility, QoSProfile, ReliabilityPolicy)
+from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import Image
 
 from activeloc_ros.images import rgb_to_image_fields
-from activeloc_ros.nodes.messages import camera_info
+from activeloc_ros.nodes.lockstep import Lockstep
+from activeloc_ros.nodes.messages import camera_info, stamp_ns
+
+RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 
 
 def publish_frame(node, rgb, stamp, k):
@@ -33,12 +42,52 @@ def images_heard(node) -> bool:
     return node.image_pub.get_subscription_count() >= node.params['min_subscribers']
 
 
-def lockstep_graph_up(node) -> bool:
-    """Whether the pictures have their readers, and perception and the controller, which
-    lockstep waits for at every frame, publish what the node listens to."""
+def lockstep_wiring(node, state_type, state_topic: str) -> Lockstep:
+    """A world's side of lockstep: publishes ``/clock``; hears perception's locations, the
+    controller's ``action_location/ignored`` and the echo of the world's own state on
+    ``state_topic``, each fed to the returned ``Lockstep`` under ``node._lock``."""
+    step = Lockstep(timeout=node.params['lockstep_timeout'],
+                    command_timeout=node.params['lockstep_command_timeout'])
+
+    def feed(call):
+        def callback(msg) -> None:
+            with node._lock:
+                call(stamp_ns(msg.header.stamp))
+        return callback
+
+    node.clock_pub = node.create_publisher(ClockMsg, '/clock', RELIABLE)
+    node.location_sub = node.create_subscription(
+        PointStamped, 'action_location',
+        feed(lambda t_ns: step.on_location(t_ns, time.monotonic())), RELIABLE)
+    node.ignored_sub = node.create_subscription(
+        PointStamped, 'action_location/ignored', feed(step.on_ignored), RELIABLE)
+    node.state_sub = node.create_subscription(state_type, state_topic, feed(step.on_state),
+                                              RELIABLE)
+    return step
+
+
+def readers_matched(node, publisher) -> bool:
+    """Whether every reader the graph shows on ``publisher``'s topic, but those whose QoS
+    can never match it, is matched to it: a message sent now reaches them all."""
+    readers = node.get_subscriptions_info_by_topic(publisher.topic_name)
+    can_match = sum(
+        qos_check_compatible(publisher.qos_profile, reader.qos_profile)[0]
+        != QoSCompatibility.ERROR for reader in readers)
+    return publisher.get_subscription_count() >= can_match
+
+
+def lockstep_graph_up(node, state_pub, *others) -> bool:
+    """Whether the pictures have their readers; perception and the controller, which
+    lockstep waits for at every frame, publish what the node listens to; and the world's
+    state (``state_pub``), its camera info and ``others`` reach the controller: the state
+    has a reader besides the node's own echo, and every reader the graph shows is matched.
+    Otherwise the controller could miss the first frame's state or camera info and answer
+    that frame late, or not at all."""
     return (images_heard(node) and node.command_sub.get_publisher_count() > 0
             and node.ignored_sub.get_publisher_count() > 0
-            and node.location_sub.get_publisher_count() > 0)
+            and node.location_sub.get_publisher_count() > 0
+            and state_pub.get_subscription_count() >= 2
+            and all(readers_matched(node, p) for p in (state_pub, node.info_pub, *others)))
 
 
 def may_start(node, ready: bool, heard: str, starts: str) -> bool:

@@ -17,7 +17,6 @@ import math
 import threading
 import time
 
-from geometry_msgs.msg import PointStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -28,8 +27,8 @@ from activeloc_ros.control.braccio import clamp_text, clamp_to_limits, refusal_t
 from activeloc_ros.data import FrameTruth
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.nodes.frames import (
-    images_heard, lockstep_graph_up, may_start, publish_frame)
-from activeloc_ros.nodes.lockstep import Lockstep, moot_in_lockstep, time_ns
+    images_heard, lockstep_graph_up, lockstep_wiring, may_start, publish_frame)
+from activeloc_ros.nodes.lockstep import moot_in_lockstep, time_ns
 from activeloc_ros.nodes.masters import PublisherWatch
 from activeloc_ros.nodes.messages import (
     arm_joints_deg, joint_state, stamp_ns, time_from_ns)
@@ -76,14 +75,8 @@ class SimNode(Node):
             QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         if p['lockstep']:
-            self.lockstep = Lockstep(timeout=p['lockstep_timeout'],
-                                     command_timeout=p['lockstep_command_timeout'])
-            self.clock_pub = self.create_publisher(ClockMsg, '/clock', reliable)
-            self.location_sub = self.create_subscription(
-                PointStamped, 'action_location', self.on_location, reliable)
-            self.ignored_sub = self.create_subscription(
-                PointStamped, 'action_location/ignored', self.on_ignored, reliable)
-            self.create_subscription(JointState, 'joint_states', self.on_state, reliable)
+            # our own arm state back: it is on its way to the controller too
+            self.lockstep = lockstep_wiring(self, JointState, 'joint_states')
         else:
             self.create_timer(1.0 / p['state_rate'], self.publish_state, clock=steady)
         self.pacer = Pacer(p['rate'])
@@ -153,19 +146,6 @@ class SimNode(Node):
             self.get_logger().warning(clamp_text(joints, safe, self.clamped),
                                       throttle_duration_sec=5.0)
         return True
-
-    def on_location(self, msg: PointStamped) -> None:
-        with self._lock:
-            self.lockstep.on_location(stamp_ns(msg.header.stamp), time.monotonic())
-
-    def on_state(self, msg: JointState) -> None:
-        """Lockstep: our own arm state back, so it is on its way to the controller too."""
-        with self._lock:
-            self.lockstep.on_state(stamp_ns(msg.header.stamp))
-
-    def on_ignored(self, msg: PointStamped) -> None:
-        with self._lock:
-            self.lockstep.on_ignored(stamp_ns(msg.header.stamp))
 
     # -- outputs ---------------------------------------------------------------------------
 
@@ -248,7 +228,8 @@ class SimNode(Node):
 
     def _subscriber_ready(self) -> bool:
         if self.lockstep is not None:
-            return may_start(self, lockstep_graph_up(self), 'perception and controller are up',
+            return may_start(self, lockstep_graph_up(self, self.state_pub),
+                             'perception and controller are up',
                              'lockstep starts')
         return may_start(self, images_heard(self), 'a subscriber is listening',
                          'the scene starts')

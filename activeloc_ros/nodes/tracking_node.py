@@ -34,10 +34,10 @@ from std_msgs.msg import Header
 from activeloc_ros.control.base import Twist as BaseTwist
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.nodes.frames import (
-    images_heard, lockstep_graph_up, may_start, publish_frame)
-from activeloc_ros.nodes.lockstep import ANSWER, Lockstep, moot_in_lockstep
+    images_heard, lockstep_graph_up, lockstep_wiring, may_start, publish_frame)
+from activeloc_ros.nodes.lockstep import ANSWER, moot_in_lockstep
 from activeloc_ros.nodes.masters import PublisherWatch
-from activeloc_ros.nodes.messages import scan_message, stamp_ns, time_from_ns
+from activeloc_ros.nodes.messages import scan_message, time_from_ns
 from activeloc_ros.nodes.params import declare, node_help
 from activeloc_ros.nodes.process import frame_due, frames_stopped, run
 from activeloc_ros.tracking.params import PARAMS
@@ -70,14 +70,7 @@ class TrackingNode(Node):
         self.masters = PublisherWatch(self, 'cmd_vel')    # the base obeys one controller
         self.lockstep = None
         if p['lockstep']:
-            self.lockstep = Lockstep(timeout=p['lockstep_timeout'],
-                                     command_timeout=p['lockstep_command_timeout'])
-            self.clock_pub = self.create_publisher(ClockMsg, '/clock', reliable)
-            self.location_sub = self.create_subscription(
-                PointStamped, 'action_location', self.on_location, reliable)
-            self.ignored_sub = self.create_subscription(
-                PointStamped, 'action_location/ignored', self.on_ignored, reliable)
-            self.create_subscription(Odometry, 'odom', self.on_odom, reliable)
+            self.lockstep = lockstep_wiring(self, Odometry, 'odom')
         self.published = 0
         self.rejected = 0
         self.finished = False
@@ -119,18 +112,6 @@ class TrackingNode(Node):
                 # a Twist has no stamp: a command once the frame is out answers it (DDS may
                 # bring it before this node hears the location it answers)
                 self.lockstep.on_command(self.lockstep.t_ns)
-
-    def on_location(self, msg: PointStamped) -> None:
-        with self._lock:
-            self.lockstep.on_location(stamp_ns(msg.header.stamp), time.monotonic())
-
-    def on_ignored(self, msg: PointStamped) -> None:
-        with self._lock:
-            self.lockstep.on_ignored(stamp_ns(msg.header.stamp))
-
-    def on_odom(self, msg: Odometry) -> None:
-        with self._lock:
-            self.lockstep.on_state(stamp_ns(msg.header.stamp))
 
     # -- stepping --------------------------------------------------------------------------
 
@@ -215,7 +196,8 @@ class TrackingNode(Node):
         self.target_pub.publish(target)
 
     def _ready(self) -> bool:
-        ready = (images_heard(self) if self.lockstep is None else lockstep_graph_up(self))
+        ready = (images_heard(self) if self.lockstep is None
+                 else lockstep_graph_up(self, self.odom_pub, self.scan_pub))
         if not may_start(self, ready, 'the graph is up', 'the episode starts'):
             return False
         self.started_at = time.monotonic()
