@@ -1,5 +1,6 @@
-"""Pure value checks for configuration: each returns an error message, or None when valid;
-and `Param`, a parameter's name, default, description and check, as every node declares it.
+"""Pure value checks for configuration: each returns an error message, or None when valid
+(but ``check_field_types``, which raises, for a config dataclass's ``__post_init__``); and
+`Param`, a parameter's name, default, description and check, as every node declares it.
 
 ROS-free, so the model's config and the nodes' ROS parameters share them. A closed interval
 is a ``Range``, which ``nodes.params`` also writes into the parameter's descriptor (so
@@ -10,6 +11,8 @@ import math
 import numbers
 import os
 from typing import Any, Callable, Sequence
+
+from activeloc_ros.errors import ConfigError
 
 Check = Callable[[Any], 'str | None']
 
@@ -100,24 +103,26 @@ non_negative = at_least(0)
 field_of_view = in_range(1.0, 170.0)
 
 
-def field_types(config) -> 'str | None':
-    """The first field of a config dataclass whose value is not of its annotated kind
-    (float: a number, int: a whole number, bool, str), or None. Values from a command line
-    (``--set hidden=abc``, ``width=100.5``) are caught here with the field's name, not by a
-    TypeError where they are first used."""
+def check_field_types(config, what: str = '') -> None:
+    """Raise ConfigError (its text led by ``what``) at the first field of a config dataclass
+    whose value is not of its annotated kind (float: a number, int: a whole number, bool,
+    str). Values from a command line (``--set hidden=abc``, ``width=100.5``) are caught here
+    with the field's name, not by a TypeError where they are first used."""
     for f in fields(config):
         value, kind = getattr(config, f.name), f.type
         kind = getattr(kind, '__name__', kind)     # a class, or its name as a string
         if kind == 'float' and not is_number(value):
-            return f'{f.name} must be a number, got {value!r}'
-        if kind == 'int' and not (isinstance(value, numbers.Integral)
-                                  and not isinstance(value, bool)):
-            return f'{f.name} must be a whole number, got {value!r}'
-        if kind == 'bool' and not isinstance(value, bool):
-            return f'{f.name} must be true or false, got {value!r}'
-        if kind == 'str' and not isinstance(value, str):
-            return f'{f.name} must be a string, got {value!r}'
-    return None
+            problem = 'must be a number'
+        elif kind == 'int' and (not isinstance(value, numbers.Integral)
+                                or isinstance(value, bool)):
+            problem = 'must be a whole number'
+        elif kind == 'bool' and not isinstance(value, bool):
+            problem = 'must be true or false'
+        elif kind == 'str' and not isinstance(value, str):
+            problem = 'must be a string'
+        else:
+            continue
+        raise ConfigError(f'{what}{f.name} {problem}, got {value!r}')
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,8 @@ import cv2
 import numpy as np
 
 from activeloc_ros import metrics
-from activeloc_ros.checks import above, field_of_view, field_types, in_range, non_negative
+from activeloc_ros.checks import (
+    above, check_field_types, field_of_view, in_range, non_negative)
 from activeloc_ros.control.braccio import ArmMapping
 from activeloc_ros.control.geometry import Intrinsics
 from activeloc_ros.errors import ConfigError
@@ -59,9 +60,7 @@ class ScreenConfig:
     wall_grey: int = 40
 
     def __post_init__(self):
-        problem = field_types(self)
-        if problem:
-            raise ConfigError('screen ' + problem)
+        check_field_types(self, 'screen ')
         checks = {
             'screen_width_m': above(0.0), 'screen_height_m': above(0.0),
             'view_fraction': in_range(0.01, 1.0), 'distance_m': non_negative,

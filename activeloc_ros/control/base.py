@@ -42,7 +42,7 @@ import statistics
 
 import numpy as np
 
-from activeloc_ros.checks import field_types
+from activeloc_ros.checks import check_field_types
 from activeloc_ros.control.geometry import angular_error, Intrinsics
 from activeloc_ros.control.pd import PDConfig, PDController
 from activeloc_ros.control.reactive import LatencyStats, location_problem
@@ -140,9 +140,7 @@ class BaseConfig:
     avoid_max_deg: float = 40.0
 
     def __post_init__(self):
-        problem = field_types(self)
-        if problem:
-            raise ConfigError(problem)
+        check_field_types(self)
         for name in ('step', 'max_speed', 'max_turn_deg_s', 'watchdog_timeout',
                      'discrete_speed', 'discrete_turn_deg_s', 'camera_height', 'distance',
                      'avoid_reach', 'avoid_radius'):

@@ -7,7 +7,7 @@ frame was captured. The derivative is taken over the frames' capture time stamps
 from dataclasses import dataclass
 import math
 
-from activeloc_ros.checks import field_types
+from activeloc_ros.checks import check_field_types
 from activeloc_ros.errors import ConfigError
 
 # Paper Table 3: the full model and its controller ablations, (lambda_p, lambda_d).
@@ -57,9 +57,7 @@ class PDConfig:
     derivative_tau: float = 0.0
 
     def __post_init__(self):
-        problem = field_types(self)
-        if problem:
-            raise ConfigError('PD ' + problem)
+        check_field_types(self, 'PD ')
         for name in ('kp', 'kd', 'dead_band', 'derivative_tau'):
             value = getattr(self, name)
             if not math.isfinite(value) or value < 0:

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import math
 from typing import Sequence
 
-from activeloc_ros.checks import field_types
+from activeloc_ros.checks import check_field_types
 from activeloc_ros.control.braccio import (
     ArmMapping, check_pose, clamp_to_limits, JointGuard, speed_deg_s)
 from activeloc_ros.control.geometry import angular_error, Intrinsics
@@ -67,9 +67,7 @@ class ControllerConfig:
     confirm_deg: float = 0.0
 
     def __post_init__(self):
-        problem = field_types(self)
-        if problem:
-            raise ConfigError(problem)
+        check_field_types(self)
         for name in ('pan_limit_deg', 'tilt_limit_deg'):
             value = getattr(self, name)
             if not (math.isfinite(value) and 0 <= value <= 180):

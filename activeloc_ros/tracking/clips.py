@@ -26,7 +26,7 @@ from typing import Iterator
 import numpy as np
 
 from activeloc_ros import metrics
-from activeloc_ros.checks import field_types
+from activeloc_ros.checks import check_field_types
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.tracking.people import Clip, clothes, follow, Person, TRAVEL_CLIPS
 from activeloc_ros.tracking.scenes import build, Builder, SCENES, TEXTURES
@@ -68,9 +68,7 @@ class ClipConfig:
     min_visible_px: int = 0
 
     def __post_init__(self):
-        problem = field_types(self)
-        if problem:
-            raise ConfigError(problem)
+        check_field_types(self)
         if not (32 <= self.width <= 4096 and 32 <= self.height <= 4096) or (
                 self.width % 2 or self.height % 2):
             raise ConfigError('width and height must be even and 32 to 4096 (H.264 video), '

@@ -29,7 +29,7 @@ import tempfile
 import numpy as np
 
 from activeloc_ros import metrics
-from activeloc_ros.checks import field_of_view, field_types, is_number
+from activeloc_ros.checks import check_field_types, field_of_view, is_number
 from activeloc_ros.control.base import BaseConfig, BaseController, Scan, Twist
 from activeloc_ros.control.geometry import Intrinsics
 from activeloc_ros.errors import ConfigError
@@ -76,9 +76,7 @@ class TrackingConfig:
     scan_range: float = 4.0
 
     def __post_init__(self):
-        problem = field_types(self)
-        if problem:
-            raise ConfigError(problem)
+        check_field_types(self)
         speeds = self.target_speed
         if not (isinstance(speeds, tuple) and len(speeds) == 2 and all(map(is_number, speeds))):
             raise ConfigError(f'target_speed must be two numbers (low, high), got {speeds!r}')
