@@ -13,7 +13,6 @@ that differ, a position that is not a finite angle in degrees, such as 1e308 rad
 link's health once a second. A serial link down for ``give_up_timeout`` (never connected,
 or lost and not back) ends the node with an error and exit code 1.
 """
-import contextlib
 import math
 import threading
 import time
@@ -92,7 +91,8 @@ class ArmNode(Node):
         self._last_link_event = ''
         self._lock = threading.RLock()  # stop_on_purpose may come from another thread
         self._stopped = threading.Event()
-        self.rewinds = Rewinds(self)
+        self.rewinds = Rewinds(self, self._lock, self._restart, 'the arm goes on from there')
+        self._locked = self.rewinds.locked   # the lock, for a callback that moves the arm
 
         if self.backend == 'sim':
             self.sim = SimArm(values['sim_start_deg'], self._now(),
@@ -136,26 +136,12 @@ class ArmNode(Node):
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
-    @contextlib.contextmanager
-    def _locked(self):
-        """The node's lock, for a callback that moves the arm: first, if the clock ran back,
-        the simulated servos and the stop's ramp go on from the new time (the serial link
-        keeps its own, monotonic, time)."""
-        with self._lock:
-            self._restart_after_rewind()
-            yield
-
-    def _restart_after_rewind(self) -> None:
-        jump = self.rewinds.take()
-        if jump is None:
-            return
-        now = self._now()
+    def _restart(self, now: float) -> None:
+        """After the clock ran back (`Rewinds`): the simulated servos and the stop's ramp go
+        on from ``now`` (the serial link keeps its own, monotonic, time)."""
         if self.sim is not None:
             self.sim.restart(now)
         self._stop_t = min(self._stop_t, now)
-        self.get_logger().warning(
-            f'the clock ran back {-jump:.1f} s, to {now:.2f} s (a bag replayed in a loop?): '
-            'the arm goes on from there')
 
     # -- the arm, whichever back end -------------------------------------------------------
 

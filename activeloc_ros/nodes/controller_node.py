@@ -23,7 +23,6 @@ obstacles), and publishes ``cmd_vel`` (geometry_msgs/Twist) in place of
 limits, confirmation; the base's forward rule) is refused at run time, and named with a
 warning when set at start, rather than silently ignored.
 """
-import contextlib
 import math
 import threading
 
@@ -76,7 +75,9 @@ class ControllerNode(Node):
         self.stopped = False
         self._early: PointStamped | None = None   # simulated time: ahead of the arm's state
         self._regions: dict[int, tuple] = {}       # base: stamp (ns) -> box of the location
-        self.rewinds = Rewinds(self)
+        self.rewinds = Rewinds(self, self._lock, self._restart,
+                               'the controller starts over from its last command')
+        self._locked = self.rewinds.locked   # the lock, for a callback that touches the core
 
         # Best effort hears any publisher (a camera driver's sensor QoS); in simulated time
         # (lockstep, our own reliable publishers) every location and arm state counts.
@@ -135,25 +136,11 @@ class ControllerNode(Node):
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
-    @contextlib.contextmanager
-    def _locked(self):
-        """The node's lock, for a callback that touches the core: first, if the clock ran
-        back, the core starts over at the new time."""
-        with self._lock:
-            self._restart_after_rewind()
-            yield
-
-    def _restart_after_rewind(self) -> None:
-        jump = self.rewinds.take()
-        if jump is None:
-            return
-        now = self._now()
+    def _restart(self, now: float) -> None:
+        """After the clock ran back (`Rewinds`): the core starts over at ``now``."""
         self.core.restart(now)
         self._early = None
         self._regions.clear()
-        self.get_logger().warning(
-            f'the clock ran back {-jump:.1f} s, to {now:.2f} s (a bag replayed in a loop?): '
-            'the controller starts over from its last command')
 
     # -- inputs ----------------------------------------------------------------------------
 
