@@ -56,6 +56,12 @@ def output_dir(path: str | Path, option: str = '--out') -> Path:
     return out
 
 
+def add_jobs_option(p: argparse.ArgumentParser) -> None:
+    """--jobs: how many worker processes."""
+    p.add_argument('--jobs', type=int, default=min(2, os.cpu_count() or 1), metavar='N',
+                   help='worker processes (default: 2 or the number of cores)')
+
+
 def add_sequence_options(p: argparse.ArgumentParser) -> None:
     """--data, --sequences, --camera and --max-frames: which annotated sequences to run."""
     p.add_argument('--data', help=f'sequence root (default ${data.ENV_VAR} or '

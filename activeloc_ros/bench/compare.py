@@ -25,7 +25,8 @@ import time
 
 from activeloc_ros import data
 from activeloc_ros.bench import (
-    add_sequence_options, check_seed, key_values, load_selected, output_dir, run_jobs)
+    add_jobs_option, add_sequence_options, check_seed, key_values, load_selected, output_dir,
+    run_jobs)
 from activeloc_ros.bench import protocol, screen
 from activeloc_ros.bench.methods import (
     controller_for, METHODS, MODEL_METHODS, params_file)
@@ -258,7 +259,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--aim-limits', choices=AIM_LIMITS, default='arm')
     p.add_argument('--resamples', type=int, default=10000, metavar='N',
                    help='bootstrap draws (default 10000)')
-    p.add_argument('--jobs', type=int, default=min(2, os.cpu_count() or 1), metavar='N')
+    add_jobs_option(p)
     p.add_argument('--out', metavar='DIR', default='out/compare',
                    help='compare.md and compare.json go here, runs in DIR/runs (a cache: '
                         'the same run of the same code is not repeated)')

@@ -37,7 +37,7 @@ import time
 
 import numpy as np
 
-from activeloc_ros.bench import check_seed, output_dir, run_jobs
+from activeloc_ros.bench import add_jobs_option, check_seed, output_dir, run_jobs
 from activeloc_ros.errors import ActivelocError, ConfigError
 from activeloc_ros.progress import Progress
 
@@ -213,8 +213,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--height', type=int, default=360,
                    help='image height, even, >= 32 (default 360: 16:9 like the projected '
                         'screen)')
-    p.add_argument('--jobs', type=int, default=min(2, os.cpu_count() or 1), metavar='N',
-                   help='worker processes (default: 2 or the number of cores)')
+    add_jobs_option(p)
     p.add_argument('--force', action='store_true',
                    help='replace existing scenes even when they are up to date')
     p.add_argument('--quiet', action='store_true', help='no progress on stderr')

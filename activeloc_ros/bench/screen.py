@@ -27,15 +27,15 @@ import numpy as np
 
 from activeloc_ros import data
 from activeloc_ros.bench import (
-    add_sequence_options, check_seed, in_threads, key_values, load_selected, names, output_dir,
-    run_jobs)
+    add_jobs_option, add_sequence_options, check_seed, in_threads, key_values, load_selected,
+    names, output_dir, run_jobs)
 from activeloc_ros.bench.methods import (
     CONTROL_OPTIONS, controller_for, make_pointer, METHODS, MODEL_METHODS, params_file,
     PD_PARAMS)
 from activeloc_ros.bench.pointers import ModelPointer
 from activeloc_ros.bench.time_plots import time_plots
 from activeloc_ros.bench.video import (
-    commit_video, discard_videos, H264Writer, temporary_path)
+    commit_video, H264Writer, run_keeping_results, temporary_path)
 from activeloc_ros.closed_loop import FrameRecord, MODES, run_episode, screen_world
 from activeloc_ros.errors import ActivelocError, ConfigError, DataError
 from activeloc_ros.paths import write_atomic
@@ -349,8 +349,7 @@ def parser() -> argparse.ArgumentParser:
                    help="how far the camera may turn: 'arm' (default) only the arm's joints "
                         "limit it, and past the screen's edge it sees the plain wall, as the "
                         "paper's rig; 'screen' keeps its whole view on the screen")
-    p.add_argument('--jobs', type=int, default=min(2, os.cpu_count() or 1), metavar='N',
-                   help='worker processes (default: 2 or the number of cores)')
+    add_jobs_option(p)
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--json', action='store_true', help='one JSON object per method on stdout')
     p.add_argument('--out', metavar='DIR', default='out/screen',
@@ -361,15 +360,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parser().parse_args(argv)
-    try:
-        return run(args)
-    except KeyboardInterrupt:
-        discard_videos(Path(args.out) / 'videos')
-        end_of_progress_line = '\n' if sys.stderr.isatty() else ''
-        print(f'{end_of_progress_line}interrupted: {args.out} keeps the previous results',
-              file=sys.stderr)
-        return 130
+    return run_keeping_results(run, parser().parse_args(argv))
 
 
 def run(args: argparse.Namespace) -> int:

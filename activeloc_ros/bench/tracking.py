@@ -30,7 +30,6 @@ import csv
 import io
 import json
 import math
-import os
 from pathlib import Path
 import sys
 import time
@@ -39,12 +38,12 @@ import traceback
 import numpy as np
 
 from activeloc_ros.bench import (
-    check_seed, in_threads, key_values, names, output_dir, run_jobs)
+    add_jobs_option, check_seed, in_threads, key_values, names, output_dir, run_jobs)
 from activeloc_ros.bench import methods
 from activeloc_ros.bench.methods import (
     method_pd, PD_PARAMS, table3_methods, TRACKER_METHODS)
 from activeloc_ros.bench.tracking_video import TrackingVideo
-from activeloc_ros.bench.video import commit_video, discard_videos
+from activeloc_ros.bench.video import commit_video, run_keeping_results
 from activeloc_ros.closed_loop import MODES, Pointing, run_episode
 from activeloc_ros.control.base import BASE_PD, BaseConfig, BaseController, FORWARD_RULES
 from activeloc_ros.control.params import BASE_PD_SETTINGS
@@ -369,8 +368,7 @@ def parser() -> argparse.ArgumentParser:
                         + ', '.join(PD_PARAMS) + '), e.g. pace=0.8')
     p.add_argument('--set', nargs='+', action='extend', metavar='KEY=VALUE', default=[],
                    help='PerceptionConfig fields for every model method, e.g. lr=1e-4')
-    p.add_argument('--jobs', type=int, default=min(2, os.cpu_count() or 1), metavar='N',
-                   help='worker processes (default: 2 or the number of cores)')
+    add_jobs_option(p)
     p.add_argument('--videos', choices=('first', 'all', 'none'), default='first',
                    help='overlay videos of the first episode of each scene and method '
                         '(default), of every episode, or none')
@@ -383,13 +381,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parser().parse_args(argv)
-    try:
-        return run(args)
-    except KeyboardInterrupt:
-        discard_videos(Path(args.out) / 'videos')
-        print(f'\ninterrupted: {args.out} keeps the previous results', file=sys.stderr)
-        return 130
+    return run_keeping_results(run, parser().parse_args(argv))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -3,9 +3,12 @@
 OpenCV's pip wheels write MPEG-4 Part 2 ('mp4v'), which no browser plays, and carry no
 H.264 encoder; PyAV's wheels bundle FFmpeg with libx264.
 """
+import argparse
 from fractions import Fraction
 import os
 from pathlib import Path
+import sys
+from typing import Callable
 
 import av
 import numpy as np
@@ -74,3 +77,18 @@ def discard_videos(video_dir: Path) -> None:
     """Remove every unfinished or uncommitted video under ``video_dir``."""
     for tmp in video_dir.glob('*/.*.tmp.mp4'):
         tmp.unlink(missing_ok=True)
+
+
+def run_keeping_results(run: Callable[[argparse.Namespace], int],
+                        args: argparse.Namespace) -> int:
+    """``run(args)`` for a benchmark that writes its results and videos into ``args.out``:
+    after a Ctrl-C the unfinished videos are gone, the previous results stay, and the exit
+    status is 130."""
+    try:
+        return run(args)
+    except KeyboardInterrupt:
+        discard_videos(Path(args.out) / 'videos')
+        end_of_progress_line = '\n' if sys.stderr.isatty() else ''
+        print(f'{end_of_progress_line}interrupted: {args.out} keeps the previous results',
+              file=sys.stderr)
+        return 130
