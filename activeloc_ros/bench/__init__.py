@@ -62,6 +62,14 @@ def add_jobs_option(p: argparse.ArgumentParser) -> None:
                    help='worker processes (default: 2 or the number of cores)')
 
 
+def add_output_options(p: argparse.ArgumentParser, out_help: str,
+                       out_default: str | None = None) -> None:
+    """--json, --out (``out_help``, ``out_default``) and --quiet: where the results go."""
+    p.add_argument('--json', action='store_true', help='one JSON object per method on stdout')
+    p.add_argument('--out', metavar='DIR', default=out_default, help=out_help)
+    p.add_argument('--quiet', action='store_true', help='no progress on stderr')
+
+
 def add_sequence_options(p: argparse.ArgumentParser) -> None:
     """--data, --sequences, --camera and --max-frames: which annotated sequences to run."""
     p.add_argument('--data', help=f'sequence root (default ${data.ENV_VAR} or '

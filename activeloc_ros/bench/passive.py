@@ -38,7 +38,8 @@ import numpy as np
 
 from activeloc_ros import data, metrics
 from activeloc_ros.bench import (
-    add_sequence_options, check_seed, key_values, load_selected, names, output_dir)
+    add_output_options, add_sequence_options, check_seed, key_values, load_selected, names,
+    output_dir)
 from activeloc_ros.bench.passive_maps import CentreBias, FrameDiff, GRID, RandomMap
 from activeloc_ros.bench.pointers import (
     ABLATIONS as MODEL_ROWS, FrameDiffPointer, ModelPointer)
@@ -374,10 +375,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--auc-jitter', action='store_true',
                    help='break AUC-Judd ties at random (MIT code default); off: ties count '
                         'against the map, so a saturated one-hot map scores 0.5 on a miss')
-    p.add_argument('--json', action='store_true', help='one JSON object per method on stdout')
-    p.add_argument('--out', metavar='DIR',
-                   help='write passive.json (with per-frame scores) and passive.md there')
-    p.add_argument('--quiet', action='store_true', help='no progress on stderr')
+    add_output_options(p, 'write passive.json (with per-frame scores) and passive.md there')
     return p
 
 

@@ -27,8 +27,8 @@ import numpy as np
 
 from activeloc_ros import data
 from activeloc_ros.bench import (
-    add_jobs_option, add_sequence_options, check_seed, in_threads, key_values, load_selected,
-    names, output_dir, run_jobs)
+    add_jobs_option, add_output_options, add_sequence_options, check_seed, in_threads,
+    key_values, load_selected, names, output_dir, run_jobs)
 from activeloc_ros.bench.methods import (
     CONTROL_OPTIONS, controller_for, make_pointer, METHODS, MODEL_METHODS, params_file,
     PD_PARAMS)
@@ -351,11 +351,9 @@ def parser() -> argparse.ArgumentParser:
                         "paper's rig; 'screen' keeps its whole view on the screen")
     add_jobs_option(p)
     p.add_argument('--seed', type=int, default=0)
-    p.add_argument('--json', action='store_true', help='one JSON object per method on stdout')
-    p.add_argument('--out', metavar='DIR', default='out/screen',
-                   help='results, plots and videos go here (default out/screen)')
     p.add_argument('--no-video', action='store_true', help='no overlay videos')
-    p.add_argument('--quiet', action='store_true', help='no progress on stderr')
+    add_output_options(p, 'results, plots and videos go here (default out/screen)',
+                       'out/screen')
     return p
 
 

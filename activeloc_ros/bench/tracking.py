@@ -38,7 +38,8 @@ import traceback
 import numpy as np
 
 from activeloc_ros.bench import (
-    add_jobs_option, check_seed, in_threads, key_values, names, output_dir, run_jobs)
+    add_jobs_option, add_output_options, check_seed, in_threads, key_values, names, output_dir,
+    run_jobs)
 from activeloc_ros.bench import methods
 from activeloc_ros.bench.methods import (
     method_pd, PD_PARAMS, table3_methods, TRACKER_METHODS)
@@ -372,11 +373,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--videos', choices=('first', 'all', 'none'), default='first',
                    help='overlay videos of the first episode of each scene and method '
                         '(default), of every episode, or none')
-    p.add_argument('--json', action='store_true',
-                   help='one JSON object per method on stdout')
-    p.add_argument('--out', metavar='DIR', default='out/tracking',
-                   help='results, plots and videos go here (default out/tracking)')
-    p.add_argument('--quiet', action='store_true', help='no progress on stderr')
+    add_output_options(p, 'results, plots and videos go here (default out/tracking)',
+                       'out/tracking')
     return p
 
 
