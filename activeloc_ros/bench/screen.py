@@ -35,7 +35,7 @@ from activeloc_ros.bench.methods import (
 from activeloc_ros.bench.pointers import ModelPointer
 from activeloc_ros.bench.time_plots import time_plots
 from activeloc_ros.bench.video import (
-    commit_video, H264Writer, run_keeping_results, temporary_path)
+    commit_video, PendingVideo, run_keeping_results)
 from activeloc_ros.closed_loop import FrameRecord, MODES, run_episode, screen_world
 from activeloc_ros.errors import ActivelocError, ConfigError, DataError
 from activeloc_ros.paths import write_atomic
@@ -112,31 +112,22 @@ FRAME_COLUMNS = ['index', 't', 'pan_deg', 'tilt_deg', 'processed', 'scored', 'aa
                  'in_view', 'auc_judd', 'pointing_deg']
 
 
-class OverlayVideo:
+class OverlayVideo(PendingVideo):
     """The whole screen with the camera's view (yellow), the truth (green) and the
-    method's newest location (red), the camera image inset, as H.264 that browsers play.
-    Written to a temporary file (`video.temporary_path`) that `video.commit_video` puts in
-    place once the whole benchmark has its tables."""
+    method's newest location (red), the camera image inset, as H.264 that browsers play."""
 
     def __init__(self, path: Path, screen: VirtualScreen, fps: float, label: str, *,
                  max_width: int = 640):
-        self.path = path
+        super().__init__(path, fps)
         self.screen = screen
-        self.fps = fps
         self.label = label
         self.max_width = max_width
-        self.tmp = temporary_path(path)
-        self.tmp.unlink(missing_ok=True)     # a killed run's leftover
-        self.writer = None
         self.inset = None
 
     def add(self, scene: np.ndarray, record: FrameRecord, camera: np.ndarray | None) -> None:
         h, w = scene.shape[:2]
         scale = min(1.0, self.max_width / w)
         size = (int(round(w * scale)) // 2 * 2, int(round(h * scale)) // 2 * 2)
-        if self.writer is None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.writer = H264Writer(self.tmp, self.fps, size)
         frame = cv2.resize(cv2.cvtColor(scene, cv2.COLOR_RGB2BGR), size,
                            interpolation=cv2.INTER_AREA)
         sx, sy = size[0] / w, size[1] / h
@@ -160,18 +151,7 @@ class OverlayVideo:
         aae = '' if math.isnan(record.aae_deg) else f'  AAE {record.aae_deg:5.1f} deg'
         cv2.putText(frame, f'{self.label}  frame {record.index}{aae}', (6, 18),
                     cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
-        self.writer.write(frame)
-
-    def finish(self) -> None:
-        if self.writer is not None:
-            self.writer.close()
-
-    def abandon(self) -> None:
-        try:
-            if self.writer is not None:
-                self.writer.close()
-        finally:
-            self.tmp.unlink(missing_ok=True)
+        self.write(frame)
 
 
 # -- the whole benchmark ---------------------------------------------------------------------

@@ -6,26 +6,22 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from activeloc_ros.bench.video import H264Writer, temporary_path
+from activeloc_ros.bench.video import PendingVideo
 from activeloc_ros.closed_loop import FrameRecord
 
 if TYPE_CHECKING:
     from activeloc_ros.bench.tracking import Remembering
 
 
-class TrackingVideo:
+class TrackingVideo(PendingVideo):
     """The camera view (true box green, the method's map and choice red) beside a top-down
-    map (base blue, target red, their paths), as H.264; written to a temporary file
-    (`video.temporary_path`) that `video.commit_video` puts in place once the tables are
-    written."""
+    map (base blue, target red, their paths), as H.264."""
 
     SIDE = 480
 
     def __init__(self, path: Path, world, pointer: 'Remembering', label: str):
-        self.path, self.world, self.pointer, self.label = path, world, pointer, label
-        self.tmp = temporary_path(path)
-        self.tmp.unlink(missing_ok=True)
-        self.writer = None
+        super().__init__(path, 1.0 / world.config.step)
+        self.world, self.pointer, self.label = world, pointer, label
         self.base_path: list[tuple[float, float]] = []
         self.target_path: list[tuple[float, float]] = []
 
@@ -87,18 +83,4 @@ class TrackingVideo:
                            cv2.MARKER_CROSS, 14, 2)
         frame = np.hstack([cv2.resize(frame, (self.SIDE * w // h, self.SIDE)),
                            self.top_down(record)])
-        if self.writer is None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.writer = H264Writer(self.tmp, 1.0 / self.world.config.step,
-                                     (frame.shape[1], frame.shape[0]))
-        self.writer.write(frame)
-
-    def finish(self) -> None:
-        if self.writer is not None:
-            self.writer.close()
-
-    def abandon(self) -> None:
-        try:
-            self.finish()
-        finally:
-            self.tmp.unlink(missing_ok=True)
+        self.write(frame)

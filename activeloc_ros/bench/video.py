@@ -73,6 +73,35 @@ def commit_video(path: Path) -> None:
         os.replace(temporary_path(path), path)
 
 
+class PendingVideo:
+    """A video for ``path`` at ``fps``, written to its `temporary_path` from the first frame
+    on (whose size it takes), that `commit_video` puts in place once the benchmark has its
+    tables; `abandon` removes it."""
+
+    def __init__(self, path: Path, fps: float):
+        self.path, self.fps = path, fps
+        self.tmp = temporary_path(path)
+        self.tmp.unlink(missing_ok=True)     # a killed run's leftover
+        self.writer: H264Writer | None = None
+
+    def write(self, frame: np.ndarray) -> None:
+        """Append one (H, W, 3) uint8 BGR frame, of the first frame's size."""
+        if self.writer is None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.writer = H264Writer(self.tmp, self.fps, (frame.shape[1], frame.shape[0]))
+        self.writer.write(frame)
+
+    def finish(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+
+    def abandon(self) -> None:
+        try:
+            self.finish()
+        finally:
+            self.tmp.unlink(missing_ok=True)
+
+
 def discard_videos(video_dir: Path) -> None:
     """Remove every unfinished or uncommitted video under ``video_dir``."""
     for tmp in video_dir.glob('*/.*.tmp.mp4'):
