@@ -45,7 +45,8 @@ import numpy as np
 from activeloc_ros.checks import check_field_types
 from activeloc_ros.control.geometry import angular_error, Intrinsics
 from activeloc_ros.control.pd import PDConfig, PDController
-from activeloc_ros.control.reactive import LatencyStats, location_problem
+from activeloc_ros.control.reactive import (
+    controller_state, LatencyStats, location_problem)
 from activeloc_ros.errors import ConfigError
 
 FORWARD_RULES = ('ground', 'size', 'constant', 'none')
@@ -198,12 +199,7 @@ class BaseController:
 
     @property
     def state(self) -> str:
-        """As the arm controller's: waiting (no intrinsics), idle, tracking or holding."""
-        if self.intrinsics is None:
-            return 'waiting'
-        if self._holding:
-            return 'holding'
-        return 'tracking' if self._accepted else 'idle'
+        return controller_state(self.intrinsics, self._holding, self._accepted)
 
     @property
     def newest_state_time(self) -> float | None:

@@ -174,6 +174,17 @@ class LatencyStats:
 FUTURE_SLACK = 1.0   # s a capture stamp may run ahead of the controller's clock (skew)
 
 
+def controller_state(intrinsics: Intrinsics | None, holding: bool, accepted: bool) -> str:
+    """What a controller (the arm's or the base's) is doing: waiting (no camera intrinsics
+    yet), holding (the watchdog holds it still), tracking (it has accepted a location) or
+    idle."""
+    if intrinsics is None:
+        return 'waiting'
+    if holding:
+        return 'holding'
+    return 'tracking' if accepted else 'idle'
+
+
 def location_problem(u: float, v: float, t_capture: float, t_now: float, *,
                      intrinsics: Intrinsics | None, peak: float | None, min_peak: float,
                      last_capture: float) -> str | None:
@@ -232,11 +243,8 @@ class ReactiveController:
 
     @property
     def state(self) -> str:
-        if self.intrinsics is None:
-            return 'waiting'
-        if self._holding:
-            return 'holding'
-        return 'idle' if self._last_accept == -math.inf else 'tracking'
+        return controller_state(self.intrinsics, self._holding,
+                                self._last_accept != -math.inf)
 
     def set_intrinsics(self, intrinsics: Intrinsics) -> None:
         self.intrinsics = intrinsics
