@@ -15,7 +15,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 
 from activeloc_ros.camera_params import PARAMS
-from activeloc_ros.nodes.frames import images_heard, may_start, publish_frame
+from activeloc_ros.nodes.frames import end_playback, images_heard, may_start, publish_frame
 from activeloc_ros.nodes.messages import time_from_s
 from activeloc_ros.nodes.params import declare, node_help
 from activeloc_ros.nodes.process import frame_due, frames_stopped, run
@@ -80,7 +80,7 @@ class CameraNode(Node):
         if self.pending is None:
             self.pending = self.playback.read(loop=self.params['loop'])
             if self.pending is None:
-                self._end_of_stream()
+                end_playback(self, 'stream')
                 return
         if not (self.source.live or frame_due(
                 self.timer, self.pacer.due(self.pending.stamp, time.monotonic()))):
@@ -88,7 +88,7 @@ class CameraNode(Node):
         self.publish(self.pending)
         self.pending = None
         if self.params['max_frames'] and self.published >= self.params['max_frames']:
-            self._finish('max_frames reached')
+            self.finish('max_frames reached')
 
     def _subscriber_ready(self) -> bool:
         return may_start(self, images_heard(self), 'a subscriber is listening', 'replay starts')
@@ -102,16 +102,7 @@ class CameraNode(Node):
             k = pinhole_matrix(width, height, self.params['hfov_deg'])
         publish_frame(self, frame.rgb, stamp, k)
 
-    def _end_of_stream(self) -> None:
-        self.failure = self.playback.ended(self.published)
-        if self.failure is None:
-            self._finish('end of stream')
-            return
-        self.finished = True
-        self.timer.cancel()
-        self.get_logger().error(f'stream failed after {self.published} frames: {self.failure}')
-
-    def _finish(self, why: str) -> None:
+    def finish(self, why: str) -> None:
         self.finished = True
         self.timer.cancel()
         self.get_logger().info(self.playback.summary(why, self.published))

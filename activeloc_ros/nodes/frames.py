@@ -5,7 +5,8 @@ the two worlds, wire lockstep's clock and answers.
 Each node has ``params`` (``encoding``, ``frame_id``, ``min_subscribers``,
 ``wait_for_subscriber``; a world also ``lockstep_timeout`` and
 ``lockstep_command_timeout``), ``image_pub``, ``info_pub``, ``published``, ``started_at``
-and ``waiting``; a world also ``_lock`` and ``command_sub``.
+and ``waiting``; a world also ``_lock`` and ``command_sub``; a node that plays a stream
+(camera, sim) also ``playback``, ``timer``, ``finished``, ``failure`` and ``finish(why)``.
 """
 import time
 
@@ -35,6 +36,19 @@ def publish_frame(node, rgb, stamp, k):
     if node.published == 1:
         node.get_logger().info(f'first frame published ({width}x{height})')
     return image.header
+
+
+def end_playback(node, what: str) -> None:
+    """The node's ``playback`` has no more frames: its ``finish`` with ``end of <what>``,
+    or, when the stream failed, the frames stop with the error, which ``failure`` keeps
+    (``run`` then exits 1)."""
+    node.failure = node.playback.ended(node.published)
+    if node.failure is None:
+        node.finish(f'end of {what}')
+        return
+    node.finished = True
+    node.timer.cancel()
+    node.get_logger().error(f'{what} failed after {node.published} frames: {node.failure}')
 
 
 def images_heard(node) -> bool:

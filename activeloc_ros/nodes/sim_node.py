@@ -27,7 +27,7 @@ from activeloc_ros.control.braccio import clamp_text, clamp_to_limits, refusal_t
 from activeloc_ros.data import FrameTruth
 from activeloc_ros.errors import ConfigError
 from activeloc_ros.nodes.frames import (
-    images_heard, lockstep_graph_up, lockstep_wiring, may_start, publish_frame)
+    end_playback, images_heard, lockstep_graph_up, lockstep_wiring, may_start, publish_frame)
 from activeloc_ros.nodes.lockstep import moot_in_lockstep, time_ns
 from activeloc_ros.nodes.masters import PublisherWatch
 from activeloc_ros.nodes.messages import (
@@ -167,7 +167,7 @@ class SimNode(Node):
 
     def _max_frames_reached(self) -> bool:
         if self.params['max_frames'] and self.published >= self.params['max_frames']:
-            self._finish('max_frames reached')
+            self.finish('max_frames reached')
             return True
         return False
 
@@ -177,7 +177,7 @@ class SimNode(Node):
         if self.pending is None:
             self.pending = self._next_scene()
             if self.pending is None:
-                self._end_of_stream()
+                end_playback(self, 'scene')
                 return
         index, rgb = self.pending
         if not frame_due(self.timer, self.pacer.due(frame_time(index, self.fps),
@@ -202,7 +202,7 @@ class SimNode(Node):
             return
         scene = self._next_scene()
         if scene is None:
-            self._end_of_stream()
+            end_playback(self, 'scene')
             return
         index, rgb = scene
         t_ns = time_ns(index, self.fps)
@@ -234,16 +234,7 @@ class SimNode(Node):
         return may_start(self, images_heard(self), 'a subscriber is listening',
                          'the scene starts')
 
-    def _end_of_stream(self) -> None:
-        self.failure = self.playback.ended(self.published)
-        if self.failure is None:
-            self._finish('end of scene')
-            return
-        self.finished = True
-        self.timer.cancel()
-        self.get_logger().error(f'scene failed after {self.published} frames: {self.failure}')
-
-    def _finish(self, why: str) -> None:
+    def finish(self, why: str) -> None:
         self.finished = True
         self.timer.cancel()
         self.get_logger().info(self.playback.summary(why, self.published))
