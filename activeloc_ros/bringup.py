@@ -1,4 +1,5 @@
-"""Start the whole graph (camera, perception, controller, arm) from one script.
+"""
+Start the whole graph (camera, perception, controller, arm) from one script.
 
     python -m activeloc_ros.bringup                      # bundled bag on the virtual screen
     python -m activeloc_ros.bringup --mode lockstep --camera virtual:otb_crossing

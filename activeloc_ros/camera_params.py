@@ -1,5 +1,7 @@
-"""The camera node's parameters, ROS-free: the node declares them, bringup checks them
-before any node starts."""
+"""
+The camera node's parameters, ROS-free: the node declares them, bringup checks them
+before any node starts.
+"""
 from activeloc_ros.checks import field_of_view, in_range, non_negative, one_of, Param, positive
 from activeloc_ros.sources import default_bag
 

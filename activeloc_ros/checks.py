@@ -1,4 +1,5 @@
-"""Pure value checks for configuration: each returns an error message, or None when valid
+"""
+Pure value checks for configuration: each returns an error message, or None when valid
 (but ``check_field_types``, which raises, for a config dataclass's ``__post_init__``); and
 `Param`, a parameter's name, default, description and check, as every node declares it.
 
@@ -18,8 +19,10 @@ Check = Callable[[Any], 'str | None']
 
 
 def is_number(value) -> bool:
-    """A real number (int or float, not bool): what the range checks can compare; a string
-    such as 'nan' or '1.5' from a command line is not one."""
+    """
+    A real number (int or float, not bool): what the range checks can compare; a string
+    such as 'nan' or '1.5' from a command line is not one.
+    """
     return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
@@ -55,8 +58,10 @@ def at_least(lo: float) -> Range:
 
 
 def above(lo: float) -> Check:
-    """``value > lo`` for a finite value: an infinite timeout or rate would never act
-    (a watchdog that never fires) or overflow where it is used (``Event.wait``)."""
+    """
+    ``value > lo`` for a finite value: an infinite timeout or rate would never act
+    (a watchdog that never fires) or overflow where it is used (``Event.wait``).
+    """
     def check(value):
         if not is_number(value):
             return f'must be a number, got {value!r}'
@@ -74,8 +79,10 @@ def file_or_empty(value) -> 'str | None':
 
 
 def argument(check: Check, kind: type = float) -> Callable[[str], Any]:
-    """An argparse ``type`` that parses a command-line word as ``kind`` and applies
-    ``check``: ``--timeout nan`` or ``--count -1`` is refused with the check's message."""
+    """
+    An argparse ``type`` that parses a command-line word as ``kind`` and applies
+    ``check``: ``--timeout nan`` or ``--count -1`` is refused with the check's message.
+    """
     import argparse
 
     def parse(text: str):
@@ -104,10 +111,14 @@ field_of_view = in_range(1.0, 170.0)
 
 
 def check_field_types(config, what: str = '') -> None:
-    """Raise ConfigError (its text led by ``what``) at the first field of a config dataclass
-    whose value is not of its annotated kind (float: a number, int: a whole number, bool,
-    str). Values from a command line (``--set hidden=abc``, ``width=100.5``) are caught here
-    with the field's name, not by a TypeError where they are first used."""
+    """
+    Check that every field of a config dataclass holds a value of its annotated kind.
+
+    Float: a number, int: a whole number, bool, str. The first that does not raises
+    ConfigError, its text led by ``what``. Values from a command line (``--set hidden=abc``,
+    ``width=100.5``) are caught here with the field's name, not by a TypeError where they
+    are first used.
+    """
     for f in fields(config):
         value, kind = getattr(config, f.name), f.type
         kind = getattr(kind, '__name__', kind)     # a class, or its name as a string

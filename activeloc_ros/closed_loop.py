@@ -1,4 +1,5 @@
-"""The closed loop without ROS, in simulated time: `run_episode` steps a world
+"""
+The closed loop without ROS, in simulated time: `run_episode` steps a world
 (`world.ScreenWorld`, the projected-screen experiment, or `tracking.world.TrackingWorld`,
 active tracking) with a pointer and the world's controller.
 
@@ -56,6 +57,7 @@ GAZE_SIGMA_CELLS = 1.0        # spread of a map made from a point
 @dataclass
 class Pointing:
     """A pointer's answer: where the action is in the camera image, and its map if any."""
+
     location: tuple[float, float] | None
     heat: np.ndarray | None = None     # (rows, cols) over the camera image
     peak: float | None = None
@@ -142,7 +144,8 @@ def gaze_map(location: tuple[float, float] | None, image_wh: tuple[int, int], *,
 def screen_world(frames: Iterable[tuple[int, np.ndarray, FrameTruth]], *, fps: float,
                  screen: VirtualScreen, controller: ControllerConfig,
                  camera_fps: float | None = None) -> ScreenWorld:
-    """The projected-screen world of a sequence, its arm as ``controller`` expects it: at
+    """
+    The projected-screen world of a sequence, its arm as ``controller`` expects it: at
     its home pose, moving at its servos' step delay.
 
     :param frames: (index, scene RGB, truth) in order.
@@ -157,7 +160,8 @@ def run_episode(world, pointer: Pointer, *, controller,
                 mode: str = 'lockstep', latency_s: float = 0.0, name: str = '',
                 on_frame: Callable[[np.ndarray | None, FrameRecord, np.ndarray | None], None]
                 | None = None) -> Episode:
-    """Step a world through the closed loop until its frames end.
+    """
+    Step a world through the closed loop until its frames end.
 
     :param world: the world, fresh: a `ScreenWorld` its arm at the controller's home pose
         (`screen_world`), or a `tracking.world.TrackingWorld`.

@@ -1,4 +1,5 @@
-"""Annotated evaluation sequences: load a folder, stream RGB frames with their ground truth.
+"""
+Annotated evaluation sequences: load a folder, stream RGB frames with their ground truth.
 
 A sequence folder holds `meta.json`, `gt_xywh.txt` (one `x,y,w,h` row per frame, `nan` rows
 where the target is not visible) and, for multi-actor sequences, `gt_all_xywh.txt`
@@ -56,7 +57,8 @@ class Box(NamedTuple):
 
 @dataclass(frozen=True)
 class FrameTruth:
-    """Ground truth of one frame.
+    """
+    Ground truth of one frame.
 
     :param primary: the primary actor's box, None when it is not visible.
     :param actors: every annotated actor's box in this frame (just the primary when the
@@ -93,8 +95,10 @@ class Sequence:
 
     @property
     def fps(self) -> float:
-        """The original frame rate: the leading number of `meta['fps']` ('25 (mpg header)',
-        '~30 (n/a)'), 30 when absent or unreadable."""
+        """
+        The original frame rate: the leading number of `meta['fps']` ('25 (mpg header)',
+        '~30 (n/a)'), 30 when absent or unreadable.
+        """
         match = re.match(r'\s*~?\s*([0-9.]+)', str(self.meta.get('fps', '')))
         try:
             fps = float(match.group(1)) if match else DEFAULT_FPS
@@ -110,7 +114,8 @@ class Sequence:
         return camera_kind(self.camera)
 
     def frames(self, *, max_frames: int | None = None) -> Iterator[Sample]:
-        """Decode the frames in order, each with its ground truth.
+        """
+        Decode the frames in order, each with its ground truth.
 
         Raises `DataError` if the source has fewer frames than ground-truth rows (or more,
         when it is read to the end), or a frame of the wrong size.
@@ -130,7 +135,8 @@ class Sequence:
 
 
 def camera_kind(camera: str) -> str:
-    """'static', 'moving' or 'pan' from the free-text `meta['camera']`.
+    """
+    'static', 'moving' or 'pan' from the free-text `meta['camera']`.
 
     The first of those words found wins, so 'MOVING (pans to follow)' is moving.
     """
@@ -161,7 +167,8 @@ def resolve_data_root(arg: str | os.PathLike | None = None) -> Path:
 
 
 def find_sequences(root: str | os.PathLike) -> list[Path]:
-    """Sequence folders (those holding a `meta.json`) under `root`, sorted by name.
+    """
+    Sequence folders (those holding a `meta.json`) under `root`, sorted by name.
 
     `root` may itself be a sequence folder.
     """
@@ -204,7 +211,8 @@ NO_SUCH_SEQUENCE = 'no such sequence'
 def load_sequences(root: str | os.PathLike, *, names: list[str] | None = None,
                    cameras: list[str] | None = None,
                    ) -> tuple[list[Sequence], list[tuple[str, str]]]:
-    """Load every sequence under `root` (or only `names`), skipping the bad ones.
+    """
+    Load every sequence under `root` (or only `names`), skipping the bad ones.
 
     :param cameras: keep only these camera kinds ('static', 'pan', 'moving').
     :returns: the loaded sequences and `(name, reason)` for each one skipped.

@@ -1,4 +1,5 @@
-"""Print the messages of a topic, as `ros2 topic echo` does (for installs without ros2cli).
+"""
+Print the messages of a topic, as `ros2 topic echo` does (for installs without ros2cli).
 
     python -m activeloc_ros.echo /surprise_map
     python -m activeloc_ros.echo /action_location --count 5 --timeout 30

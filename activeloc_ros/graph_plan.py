@@ -1,6 +1,8 @@
-"""The nodes of a bringup run and what each is given: which nodes, in what order, their
+"""
+The nodes of a bringup run and what each is given: which nodes, in what order, their
 --ros-args, and their parameter values before they start (declared defaults, packaged params
-files, the user's files, then ``-p`` rules, in rcl's order)."""
+files, the user's files, then ``-p`` rules, in rcl's order).
+"""
 import importlib
 
 from activeloc_ros.errors import ConfigError
@@ -18,8 +20,10 @@ PARAMS_MODULES = {'camera': 'activeloc_ros.camera_params', 'sim': 'activeloc_ros
 
 
 def graph_nodes(args) -> tuple[str, ...]:
-    """The nodes of the run, in start order: a virtual camera's sim node (camera and arm in
-    one) or the camera and the arm, with perception and the controller."""
+    """
+    The nodes of the run, in start order: a virtual camera's sim node (camera and arm in
+    one) or the camera and the arm, with perception and the controller.
+    """
     if args.world:
         return ('tracking', 'perception', 'controller')
     if args.camera.startswith('virtual:'):
@@ -76,9 +80,11 @@ def node_arguments(node: str, args) -> list[str]:
 
 
 def for_node(ros_args: list[str], declared: set[str]) -> list[str]:
-    """The user's ROS arguments without the ``-p`` rules this node does not declare: each
+    """
+    The user's ROS arguments without the ``-p`` rules this node does not declare: each
     rule goes to the nodes it is for (`check_node_params` made sure some node is), as a
-    node refuses a rule for a parameter it does not have."""
+    node refuses a rule for a parameter it does not have.
+    """
     from activeloc_ros.nodes.params_files import cli_param_rule, undeclared
     out, skip = [], False
     for flag, item in zip(ros_args, [*ros_args[1:], None]):
@@ -94,8 +100,10 @@ def for_node(ros_args: list[str], declared: set[str]) -> list[str]:
 
 
 def own_ros_args(args) -> list[str] | None:
-    """The --ros-args for bringup's own nodes (monitor, recorder): the user's, so they share
-    the graph's namespace and remaps."""
+    """
+    The --ros-args for bringup's own nodes (monitor, recorder): the user's, so they share
+    the graph's namespace and remaps.
+    """
     return ['--ros-args', *args.ros_args] if args.ros_args else None
 
 
@@ -107,8 +115,10 @@ def camera_screen(files=()):
 
 
 def screen_aim_limits(camera: str, files) -> dict[str, float]:
-    """For a virtual camera, the controller's aim limits at which the view stays on the
-    screen, as the screen benchmark sets them; limits set in the user's `files` win."""
+    """
+    For a virtual camera, the controller's aim limits at which the view stays on the
+    screen, as the screen benchmark sets them; limits set in the user's `files` win.
+    """
     if not camera.startswith('virtual:'):
         return {}
     from activeloc_ros.nodes.params_files import file_values
@@ -125,9 +135,11 @@ def node_params(node: str) -> list:
 
 
 def node_values(node: str, files=(), ros_args=()) -> dict:
-    """A node's parameter values before it starts: its declared defaults, overlaid with its
+    """
+    A node's parameter values before it starts: its declared defaults, overlaid with its
     packaged params files (`paths.packaged_params_files`), the user's params `files`, then
-    the ``-p`` settings among ``ros_args``."""
+    the ``-p`` settings among ``ros_args``.
+    """
     from activeloc_ros.nodes.params_files import file_values
     values = {p.name: p.default for p in node_params(node)}
     values.update(file_values(node, [*packaged_params_files(), *files]))

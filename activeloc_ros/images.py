@@ -1,4 +1,5 @@
-"""Conversions between ROS image fields and RGB arrays, without ROS (cv_bridge's job, here).
+"""
+Conversions between ROS image fields and RGB arrays, without ROS (cv_bridge's job, here).
 
 Functions take and return plain fields so they can be tested without message types; the
 nodes unpack messages into them. Every unsupported input raises FrameError.
@@ -31,7 +32,8 @@ def check_size(width: int, height: int, max_pixels: int | None) -> None:
 
 def image_to_rgb(encoding: str, height: int, width: int, step: int, data, *,
                  max_pixels: int | None = None) -> np.ndarray:
-    """Return an (H, W, 3) uint8 RGB copy of a sensor_msgs/Image's pixels.
+    """
+    Return an (H, W, 3) uint8 RGB copy of a sensor_msgs/Image's pixels.
 
     :param max_pixels: refuse larger frames before touching their pixels.
     """
@@ -92,7 +94,8 @@ def compressed_size(data) -> tuple[int, int] | None:
 
 
 def decode_compressed(fmt: str, data, *, max_pixels: int | None = None) -> np.ndarray:
-    """Decode a sensor_msgs/CompressedImage (jpeg/png) to RGB.
+    """
+    Decode a sensor_msgs/CompressedImage (jpeg/png) to RGB.
 
     :param max_pixels: refuse larger frames, for PNG and JPEG before decoding them.
     """

@@ -1,4 +1,5 @@
-"""Evaluation metrics (pure numpy): AUC-Judd, angular errors, the grid 'hit' rule.
+"""
+Evaluation metrics (pure numpy): AUC-Judd, angular errors, the grid 'hit' rule.
 
 Conventions: maps are 2-D arrays over a grid laid evenly over the image, cell (row, col)
 covering x in [col * W / cols, (col + 1) * W / cols) and likewise for y; points are (x, y)
@@ -18,7 +19,8 @@ BoxLike = Sequence[float]  # (x, y, w, h)
 
 def auc_judd(saliency: np.ndarray, fixations: np.ndarray, *, jitter: bool = False,
              rng: np.random.Generator | None = None) -> float:
-    """AUC-Judd of the MIT saliency benchmark (`AUC_Judd.m`), on the map's own grid.
+    """
+    AUC-Judd of the MIT saliency benchmark (`AUC_Judd.m`), on the map's own grid.
 
     The map is min-max normalised; the thresholds are its values at the fixated cells,
     sorted descending; for threshold i (1-based), TP rate = i / Nfix and FP rate =
@@ -107,7 +109,8 @@ def peak_point(heatmap: np.ndarray, image_wh: tuple[float, float]) -> tuple[floa
 
 def blob_box(heatmap: np.ndarray, image_wh: tuple[float, float], *,
              share: float = 0.15) -> tuple[float, float, float, float] | None:
-    """The box (x, y, w, h; px) of the map's blob: the cells connected to its peak cell
+    """
+    The box (x, y, w, h; px) of the map's blob: the cells connected to its peak cell
     whose logarithm lies at least ``share`` of the way from the map's smallest positive
     value up to its peak. None for a map with no positive peak.
 
@@ -119,7 +122,8 @@ def blob_box(heatmap: np.ndarray, image_wh: tuple[float, float], *,
 
     Its corners are float32 numbers, the precision of the message that carries them
     (`action_region`, geometry_msgs/Point32), so a controller in the graph and one in the
-    benchmark steer on the same numbers: a rounding step apart, a closed loop parts."""
+    benchmark steer on the same numbers: a rounding step apart, a closed loop parts.
+    """
     m = np.asarray(heatmap, np.float64)
     peak = float(m.max()) if m.size else 0.0
     if not (math.isfinite(peak) and peak > 0):
@@ -174,7 +178,8 @@ def chance_hit_rate(boxes: Iterable[BoxLike], grid_shape: tuple[int, int],
 
 
 def centre_gaussian(grid_shape: tuple[int, int], *, sigma: float = 0.25) -> np.ndarray:
-    """Centre-bias map: isotropic Gaussian at the image centre, sums to 1.
+    """
+    Centre-bias map: isotropic Gaussian at the image centre, sums to 1.
 
     Evaluated at the cell centres in normalised coordinates (u, v in [0, 1] across the
     width and height), exp(-((u - .5)^2 + (v - .5)^2) / (2 sigma^2)).

@@ -13,8 +13,10 @@ NODE_NAMES = ('camera', 'sim', 'tracking', 'perception', 'controller', 'arm')
 
 
 def share_path(relative: str) -> Path:
-    """`relative` (e.g. 'params/camera.yaml') in the source tree, else in the installed
-    share: the ament index's (colcon) or, without one, pip's (``<prefix>/share``)."""
+    """
+    `relative` (e.g. 'params/camera.yaml') in the source tree, else in the installed
+    share: the ament index's (colcon) or, without one, pip's (``<prefix>/share``).
+    """
     here = SOURCE_ROOT / relative
     if here.exists():
         return here
@@ -28,10 +30,12 @@ def share_path(relative: str) -> Path:
 
 
 def packaged_params_files() -> list[Path]:
-    """The params files the package gives every node: params/robot.yaml, what several nodes
+    """
+    The params files the package gives every node: params/robot.yaml, what several nodes
     must agree on (the home pose, the servos' speed, the aiming joints). Everything else is
     the nodes' declared defaults (docs/parameters.md); a user's --params file holds what
-    differs from them."""
+    differs from them.
+    """
     return [share_path('params/robot.yaml')]
 
 
@@ -44,8 +48,10 @@ def file_sha256(path: Path) -> str:
 
 
 def write_atomic(path: Path, content: str | bytes) -> None:
-    """Write through a temporary file in the same folder, then rename over `path`: a reader
-    (or an interrupted run) never sees half a file."""
+    """
+    Write through a temporary file in the same folder, then rename over `path`: a reader
+    (or an interrupted run) never sees half a file.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f'.{path.name}.', suffix='.tmp')

@@ -1,5 +1,7 @@
-"""Every check of a bringup run that can fail before a node starts, each with a clear
-message (`ConfigError` or `SourceError`)."""
+"""
+Every check of a bringup run that can fail before a node starts, each with a clear
+message (`ConfigError` or `SourceError`).
+"""
 import os
 from pathlib import Path
 import time
@@ -87,8 +89,10 @@ def writable_folder(path: Path, option: str) -> None:
 
 
 def check_node_params(args) -> None:
-    """Check every node's parameters, from its files and bringup's options, as the node
-    checks them at start, so that a bad value stops the run before any node starts."""
+    """
+    Check every node's parameters, from its files and bringup's options, as the node
+    checks them at start, so that a bad value stops the run before any node starts.
+    """
     from activeloc_ros.checks import validate
     from activeloc_ros.nodes.params_files import files_problems, unknown_cli_params
     # each -p setting goes to the nodes that declare it (`for_node`): one that none of

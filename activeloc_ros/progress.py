@@ -4,7 +4,8 @@ import time
 
 
 class Progress:
-    """Prints `label  done/total  rate  eta` on stderr, redrawn in place on a terminal.
+    """
+    Prints `label  done/total  rate  eta` on stderr, redrawn in place on a terminal.
 
     :param total: number of steps expected (0 when unknown).
     :param label: what is being counted.

@@ -1,4 +1,5 @@
-"""The virtual projection screen of the paper's real-world experiment (Sec. 4.2), ROS-free.
+"""
+The virtual projection screen of the paper's real-world experiment (Sec. 4.2), ROS-free.
 
 A scene (video frames) is stretched over a flat screen ``screen_width_m`` x
 ``screen_height_m``; a pinhole camera sits on the screen's normal through its centre,
@@ -34,7 +35,8 @@ AIM_LIMITS = ('arm', 'screen')
 
 @dataclass(frozen=True)
 class ScreenConfig:
-    """The screen, where the camera stands, and the camera itself.
+    """
+    The screen, where the camera stands, and the camera itself.
 
     :param screen_width_m: screen width (paper: 221.4 cm).
     :param screen_height_m: screen height (paper: 124.5 cm).
@@ -117,7 +119,8 @@ class VirtualScreen:
                 'screen at home')
 
     def aim_limits_deg(self) -> tuple[float, float]:
-        """The largest pan and tilt (degrees, either way) such that at every aim within both
+        """
+        The largest pan and tilt (degrees, either way) such that at every aim within both
         the camera's whole view lies on the screen.
 
         Each axis alone allows the half-angle the screen spans from the camera less half
@@ -181,9 +184,11 @@ class VirtualScreen:
     # -- what the camera sees ---------------------------------------------------------------
 
     def render(self, scene: np.ndarray, pan: float, tilt: float) -> np.ndarray:
-        """The camera image (H, W, 3) of the scene on the screen; off the screen it sees the
+        """
+        The camera image (H, W, 3) of the scene on the screen; off the screen it sees the
         plain wall (``wall_grey``). The wall is uniform so it holds nothing to track or to
-        be surprised by: every method sees the same screen edge and nothing else there."""
+        be surprised by: every method sees the same screen edge and nothing else there.
+        """
         h, w = scene.shape[:2]
         H = self.homography(pan, tilt, (w, h))
         wall = self.config.wall_grey
@@ -262,7 +267,8 @@ class VirtualScreen:
 
     def place_map(self, heat: np.ndarray, pan: float, tilt: float,
                   canvas_wh: tuple[int, int]) -> np.ndarray:
-        """A camera-frame map laid on a screen-sized canvas where the camera looked.
+        """
+        A camera-frame map laid on a screen-sized canvas where the camera looked.
 
         Each canvas cell takes the (bilinear) map value under it; cells outside the view
         take -1, below any map value (maps are min-max normalised to [0, 1] first).

@@ -1,4 +1,5 @@
-"""Settings read in more than one place: the ROS parameters, and the core object built from
+"""
+Settings read in more than one place: the ROS parameters, and the core object built from
 their values, in one place.
 
 The arm mapping (how the Braccio's joints aim the camera) is declared by the controller,

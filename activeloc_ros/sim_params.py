@@ -1,5 +1,7 @@
-"""The sim node's parameters (the virtual camera on its screen, the simulated arm that aims
-it), ROS-free: the node declares them, bringup checks them before any node starts."""
+"""
+The sim node's parameters (the virtual camera on its screen, the simulated arm that aims
+it), ROS-free: the node declares them, bringup checks them before any node starts.
+"""
 from activeloc_ros.checks import in_range, non_negative, one_of, Param, positive
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE
 from activeloc_ros.settings import MAPPING_PARAMS, SCREEN_PARAMS

@@ -1,4 +1,5 @@
-"""Camera sources, ROS-free: bags, videos, image folders, OpenCV devices and RealSense.
+"""
+Camera sources, ROS-free: bags, videos, image folders, OpenCV devices and RealSense.
 
 A source yields Frames (RGB uint8, a time stamp in seconds and an index). Recorded sources
 (`live = False`) are replayed at their recorded timing by a Pacer; live ones deliver frames
@@ -296,8 +297,10 @@ class SequenceSource(Source):
 
 
 def open_scene(scene: str, *, image_topic: str = '', folder_fps: float = 10.0) -> Source:
-    """The recorded source a virtual screen shows: a source spec, a sequence folder or the
-    name of a sequence in the data root."""
+    """
+    The recorded source a virtual screen shows: a source spec, a sequence folder or the
+    name of a sequence in the data root.
+    """
     kind, _, arg = scene.partition(':')
     if not scene:
         raise SourceError(f'the virtual screen needs a scene: {SCENE_HELP}')
@@ -333,8 +336,10 @@ def default_bag() -> Path:
 
 
 def device_index(arg: str) -> int:
-    """The N of ``device:N`` (empty: 0); raises SourceError unless it is a whole number >= 0
-    (OpenCV's capture crashes the process on a negative index)."""
+    """
+    The N of ``device:N`` (empty: 0); raises SourceError unless it is a whole number >= 0
+    (OpenCV's capture crashes the process on a negative index).
+    """
     try:
         index = int(arg or 0)
     except ValueError:
@@ -366,7 +371,8 @@ def open_source(spec: str, *, clock, image_topic: str = '', folder_fps: float = 
 
 
 class Playback:
-    """A recorded source as a node plays it: the next frame, from the start again at the
+    """
+    A recorded source as a node plays it: the next frame, from the start again at the
     end with ``loop``; each reason frames were skipped for, reported once; and how the
     stream ended (the source's error, every frame skipped, or its end).
 
@@ -414,7 +420,8 @@ class Playback:
 
 
 class Pacer:
-    """When each recorded frame is due on the wall clock: replays the source's timing at `rate`.
+    """
+    When each recorded frame is due on the wall clock: replays the source's timing at `rate`.
 
     Frame stamps that go backwards (a loop restart) re-anchor the schedule.
     """

@@ -1,6 +1,8 @@
-"""bringup's supervision of node processes: start each in a session of its own that ends
+"""
+bringup's supervision of node processes: start each in a session of its own that ends
 with bringup, stop it in steps with deadlines, read its log's errors; and how a Ctrl-C or
-SIGTERM asks the graph to stop."""
+SIGTERM asks the graph to stop.
+"""
 import ctypes
 from pathlib import Path
 import re
@@ -28,8 +30,10 @@ def _die_with_parent() -> None:
 
 
 def stop_deadline(node: str, args) -> float:
-    """How long a node gets to end after SIGINT before SIGTERM: the arm may take its own
-    ``stop_timeout`` to hold or go home, which must never be cut short."""
+    """
+    How long a node gets to end after SIGINT before SIGTERM: the arm may take its own
+    ``stop_timeout`` to hold or go home, which must never be cut short.
+    """
     if node != 'arm':
         return STOP_DEADLINE_S
     values = node_values('arm', args.params, args.ros_args)
@@ -40,11 +44,13 @@ HANDLER_DEADLINE_S = 5.0       # how long a starting node may take to handle a s
 
 
 def handles_stops(process: subprocess.Popen, deadline: float) -> bool:
-    """Wait until `process` handles stops itself, it ends, or `deadline` seconds pass;
+    """
+    Wait until `process` handles stops itself, it ends, or `deadline` seconds pass;
     whether it handles them. Python catches SIGINT from its first moment, raising
     KeyboardInterrupt wherever it is, so the sign is SIGTERM, which a node's stop handling
     (`nodes.start`, then `process.run`) catches with it (Linux: /proc lists it as caught).
-    Where /proc cannot say, it is taken to."""
+    Where /proc cannot say, it is taken to.
+    """
     give_up = time.monotonic() + deadline
     while process.poll() is None:
         try:
@@ -62,8 +68,10 @@ def handles_stops(process: subprocess.Popen, deadline: float) -> bool:
 
 
 class Child:
-    """One node process, in a session of its own (a terminal's Ctrl-C reaches bringup only,
-    which stops the nodes in order) that ends when bringup ends, however it ends."""
+    """
+    One node process, in a session of its own (a terminal's Ctrl-C reaches bringup only,
+    which stops the nodes in order) that ends when bringup ends, however it ends.
+    """
 
     def __init__(self, node: str, args, log_dir: Path, env):
         self.name = node
@@ -82,9 +90,11 @@ class Child:
         return self.process.poll()
 
     def stop(self) -> int:
-        """SIGINT (the node stops on purpose), then SIGTERM, then SIGKILL, each with a deadline.
+        """
+        SIGINT (the node stops on purpose), then SIGTERM, then SIGKILL, each with a deadline.
         A process still starting Python gets its SIGINT once it handles stops (`nodes.start`
-        installs that first): before, the signal would kill it, -2 and no line in its log."""
+        installs that first): before, the signal would kill it, -2 and no line in its log.
+        """
         handles_stops(self.process, HANDLER_DEADLINE_S)
         for sig, wait in ((signal.SIGINT, self.stop_deadline), (signal.SIGTERM, 3.0),
                           (signal.SIGKILL, 3.0)):
@@ -114,11 +124,13 @@ class Child:
 
 
 class StopRequest:
-    """SIGINT and SIGTERM ask bringup to stop; the graph is then stopped in order and the
+    """
+    SIGINT and SIGTERM ask bringup to stop; the graph is then stopped in order and the
     bag closed. A signal while stopping is told to wait, not obeyed. While the nodes of an
     in-process graph are being made (a first use of an int8 encoder builds it for a minute)
     the first signal ends that at once, unless OpenVINO's model conversion swallows it: then
-    the graph stops once it is made (a node process ends in any case: `process.run`)."""
+    the graph stops once it is made (a node process ends in any case: `process.run`).
+    """
 
     def __init__(self):
         self.reason: str | None = None

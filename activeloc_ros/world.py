@@ -1,4 +1,5 @@
-"""The simulated world a closed loop steps, without ROS: its clock, what its camera sees and
+"""
+The simulated world a closed loop steps, without ROS: its clock, what its camera sees and
 what its actuator does. `closed_loop.run_episode` steps a world with any pointer; the
 tracking experiment's `tracking.world.TrackingWorld` has the same interface.
 
@@ -30,6 +31,7 @@ from activeloc_ros.screen import VirtualScreen
 @dataclass
 class View:
     """What a pointer is shown: the camera image and, for the oracles, the truth in it."""
+
     rgb: np.ndarray                    # (H, W, 3) uint8 camera image
     index: int                         # scene frame index
     t: float                           # capture time, s
@@ -50,14 +52,17 @@ def frame_time(index: int, fps: float) -> float:
 
 
 def pixel_centre(box) -> tuple[float, float]:
-    """A box's centre where the screen and the camera put pixel centres: on integers (the
-    box's pixels cover [x, x + w))."""
+    """
+    A box's centre where the screen and the camera put pixel centres: on integers (the
+    box's pixels cover [x, x + w)).
+    """
     x, y = box.centre
     return x - 0.5, y - 0.5
 
 
 class ScreenWorld:
-    """The projected-screen rig in simulated time.
+    """
+    The projected-screen rig in simulated time.
 
     :param frames: (index, scene RGB, truth) in order.
     :param fps: the scene's frame rate.
@@ -95,8 +100,10 @@ class ScreenWorld:
 
     def show(self, index: int, scene: np.ndarray, truth: FrameTruth,
              t: float | None = None) -> float:
-        """Put scene frame ``index`` on the screen at ``t`` (default: its own time, i / fps;
-        a world on a wall clock gives the time it is shown at); returns ``t``."""
+        """
+        Put scene frame ``index`` on the screen at ``t`` (default: its own time, i / fps;
+        a world on a wall clock gives the time it is shown at); returns ``t``.
+        """
         self.index, self.scene, self.truth = index, scene, truth
         self.t = frame_time(index, self.fps) if t is None else t
         return self.t
@@ -153,9 +160,11 @@ class ScreenWorld:
 
     def score(self, record, newest_map: tuple[np.ndarray, float, float] | None,
               canvas: tuple[int, int]) -> None:
-        """Fill ``record`` with the shown frame's scores: the angle between the optical axis
+        """
+        Fill ``record`` with the shown frame's scores: the angle between the optical axis
         and the closest actor (AAE), whether any actor is in view, and AUC-Judd of the
-        newest map ``(heat, pan, tilt)`` laid on the screen where the camera looked."""
+        newest map ``(heat, pan, tilt)`` laid on the screen where the camera looked.
+        """
         points = self._actors()
         record.scored = self.truth.scored and len(points) > 0
         if not record.scored:

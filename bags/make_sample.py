@@ -1,4 +1,5 @@
-"""Make the bundled sample bag `bags/vtest`, or a bag of your own video.
+"""
+Make the bundled sample bag `bags/vtest`, or a bag of your own video.
 
     python bags/make_sample.py                       # vtest.avi from Debian's opencv-doc
     python bags/make_sample.py --video FILE --out DIR [--frames N] [--width W]
@@ -45,8 +46,10 @@ def fetch_sample_video(workdir: Path) -> Path:
 
 
 def replaceable(out: Path) -> bool:
-    """May `make_sample` replace ``out``? Only when it is absent or a rosbag2 folder: its
-    metadata.yaml and MCAP files, nothing else."""
+    """
+    May `make_sample` replace ``out``? Only when it is absent or a rosbag2 folder: its
+    metadata.yaml and MCAP files, nothing else.
+    """
     if not out.exists():
         return True
     return out.is_dir() and (out / 'metadata.yaml').is_file() and all(
@@ -54,8 +57,10 @@ def replaceable(out: Path) -> bool:
 
 
 def make_sample(video: Path, out: Path, *, frames: int, width: int, quality: int) -> BagFacts:
-    """Write `frames` frames of `video`, resized to `width`, as JPEG CompressedImage messages.
-    ``out`` is replaced only if it is a bag (`replaceable`); anything else is refused."""
+    """
+    Write `frames` frames of `video`, resized to `width`, as JPEG CompressedImage messages.
+    ``out`` is replaced only if it is a bag (`replaceable`); anything else is refused.
+    """
     import cv2
     if frames < 1 or not 16 <= width <= 8192 or not 0 <= quality <= 100:
         raise SourceError(f'need frames >= 1, width in 16..8192 and quality in 0..100, got '

@@ -43,8 +43,10 @@ def spin_until(executor, condition, timeout):
 
 
 def params_args(*extra: str) -> list[str]:
-    """cli_args loading the package's params file as bringup gives it to every node (the
-    robot's), then `-p name:=value` extras."""
+    """
+    cli_args loading the package's params file as bringup gives it to every node (the
+    robot's), then `-p name:=value` extras.
+    """
     args = ['--ros-args', '--params-file', str(PARAMS / 'robot.yaml')]
     for item in extra:
         args += ['-p', item]

@@ -1,5 +1,7 @@
-"""The arm node in one process: the sim back end's kinematics and the serial back end
-against the emulated sketch (noise, a vanishing port), and the on-purpose stop."""
+"""
+The arm node in one process: the sim back end's kinematics and the serial back end
+against the emulated sketch (noise, a vanishing port), and the on-purpose stop.
+"""
 import math
 import threading
 import time
@@ -201,8 +203,10 @@ def test_every_bad_command_is_ignored_and_the_arm_lives_on(arm_graph):
 
 
 def test_random_commands_never_leave_the_joint_limits(arm_graph):
-    """Seeded fuzz over what a JointState can carry: the node never raises, and its target
-    is always inside the limits."""
+    """
+    Seeded fuzz over what a JointState can carry: the node never raises, and its target
+    is always inside the limits.
+    """
     import random
     executor, arm, probe = arm_graph('backend:=sim')
     rng = random.Random(13)
@@ -223,8 +227,10 @@ def test_random_commands_never_leave_the_joint_limits(arm_graph):
 @pytest.mark.parametrize('backend', ['sim', 'node'])
 def test_a_command_that_moves_a_joint_which_does_not_aim_is_refused(arm_graph, context,
                                                                     backend):
-    """The foreign pose of the hostile test: every joint outside its limits, the gripper
-    open. The arm (or the virtual camera's arm) refuses all of it and says why."""
+    """
+    The foreign pose of the hostile test: every joint outside its limits, the gripper
+    open. The arm (or the virtual camera's arm) refuses all of it and says why.
+    """
     foreign = (250.0, 0.0, -30.0, 200.0, 190.0, 0.0)
     if backend == 'sim':
         executor, arm, probe = arm_graph('backend:=sim')

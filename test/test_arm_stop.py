@@ -1,5 +1,7 @@
-"""Ctrl-C on the real node processes: the arm stops on purpose before the context ends,
-and a node still being made (an int8 encoder built on first use) stops at once."""
+"""
+Ctrl-C on the real node processes: the arm stops on purpose before the context ends,
+and a node still being made (an int8 encoder built on first use) stops at once.
+"""
 import math
 import os
 import signal
@@ -134,8 +136,10 @@ def test_sim_arm_goes_home_slowly_on_ctrl_c(probe, launch, tmp_path):
 
 @pytest.mark.parametrize('module', ['arm_node', 'camera_node'])
 def test_a_burst_of_sigterms_stops_a_node_cleanly(launch, tmp_path, module):
-    """A dying parent can signal its nodes more than once. A signal landing inside the
-    stop handler once deadlocked the camera for good (threading.Event.set in a handler)."""
+    """
+    A dying parent can signal its nodes more than once. A signal landing inside the
+    stop handler once deadlocked the camera for good (threading.Event.set in a handler).
+    """
     overrides = ('backend:=sim',) if module == 'arm_node' else ('loop:=true',)
     process = launch(module, *overrides)
     log = tmp_path / f'{module}.log'
@@ -152,10 +156,12 @@ def test_a_burst_of_sigterms_stops_a_node_cleanly(launch, tmp_path, module):
 
 
 def test_a_node_that_ended_by_itself_survives_a_stop_in_its_last_moments(graph_env):
-    """bringup stops a graph's source the moment its run is over: once in nine runs the
+    """
+    bringup stops a graph's source the moment its run is over: once in nine runs the
     Ctrl-C landed after the node's own end, while Python ended the process with its
     handlers back at the default, and the sim exited -2 with an error on the console.
-    Stopped many times, at random moments in the fraction of a second after the end."""
+    Stopped many times, at random moments in the fraction of a second after the end.
+    """
     import random
     rng = random.Random(62)
     for attempt in range(8):
@@ -186,9 +192,11 @@ def test_a_node_that_ended_by_itself_survives_a_stop_in_its_last_moments(graph_e
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
 def test_a_stop_while_perception_builds_its_int8_encoder_ends_the_build(launch, tmp_path,
                                                                         sig):
-    """The first use of an int8 encoder builds it for about a minute before the node is
+    """
+    The first use of an int8 encoder builds it for about a minute before the node is
     ready. A stop then ends the build at once, as on any frame, and leaves no model in the
-    cache (bringup once had to SIGKILL the node after 13 s)."""
+    cache (bringup once had to SIGKILL the node after 13 s).
+    """
     from activeloc_ros.perception.cache import weights_path
     weights = weights_path('vgg19')       # the real weights, in a cache without int8
     cache = tmp_path / 'cache'
@@ -230,8 +238,10 @@ sys.exit(run(make_node, [], on_stop=lambda node: None))
 
 
 def test_a_start_that_swallows_the_stop_is_ended_all_the_same(tmp_path):
-    """Third-party code in a node's start can swallow the KeyboardInterrupt a stop raises
-    (OpenVINO's model conversion does): the process ends within the grace all the same."""
+    """
+    Third-party code in a node's start can swallow the KeyboardInterrupt a stop raises
+    (OpenVINO's model conversion does): the process ends within the grace all the same.
+    """
     from activeloc_ros.nodes.process import START_STOP_GRACE_S
     process = subprocess.Popen([sys.executable, '-c', SWALLOWING_START], cwd=REPO,
                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,

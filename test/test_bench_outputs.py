@@ -1,5 +1,7 @@
-"""What `bench screen` leaves on disk: H.264 videos, plots over time, and nothing of an
-interrupted run."""
+"""
+What `bench screen` leaves on disk: H.264 videos, plots over time, and nothing of an
+interrupted run.
+"""
 import json
 import math
 import os

@@ -1,5 +1,7 @@
-"""`bench perception` names the CPU, the precisions and the update share of every row it
-times, and marks the shipped default."""
+"""
+`bench perception` names the CPU, the precisions and the update share of every row it
+times, and marks the shipped default.
+"""
 import json
 
 import pytest
@@ -109,8 +111,10 @@ def test_feature_gap_compares_each_precision_with_float32(tmp_path, monkeypatch,
 
 
 def test_every_bench_command_reads_set_the_same_way():
-    """One parser: `lr=1e-4` is a number everywhere (YAML 1.1 made it a string here), and
-    repeated --set options add up instead of replacing each other."""
+    """
+    One parser: `lr=1e-4` is a number everywhere (YAML 1.1 made it a string here), and
+    repeated --set options add up instead of replacing each other.
+    """
     from activeloc_ros.bench import key_values
     from activeloc_ros.bench import passive, screen
     argv = ['--set', 'lr=1e-4', 'motion_source=image', '--set', 'hidden=8']

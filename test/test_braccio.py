@@ -1,4 +1,5 @@
-"""The Braccio model: limits, home, mapping, and the guard every command passes through.
+"""
+The Braccio model: limits, home, mapping, and the guard every command passes through.
 
 The property tests drive the guard and the whole reactive controller with arbitrary, wild
 input sequences: every command must be inside the joint limits and within the servos'

@@ -78,8 +78,10 @@ def test_distortion_is_undone():
 
 
 def test_where_the_lens_model_does_not_invert_the_pixel_stays_as_measured():
-    """Strong barrel distortion folds the image's corners: the fixed-point inverse does not
-    converge there and its last step was 85 (normalised units), or infinite."""
+    """
+    Strong barrel distortion folds the image's corners: the fixed-point inverse does not
+    converge there and its last step was 85 (normalised units), or infinite.
+    """
     intr = Intrinsics(400.0, 400.0, 319.5, 239.5, 640, 480, dist=(-0.4, 0.2, 0.001, 0.001, -0.05))
     x, y = intr.normalized(592.0, 456.0)
     assert (x, y) == pytest.approx(((592.0 - 319.5) / 400, (456.0 - 239.5) / 400))
@@ -92,8 +94,10 @@ def test_where_the_lens_model_does_not_invert_the_pixel_stays_as_measured():
 
 
 def test_a_location_the_geometry_cannot_aim_at_never_reaches_the_pd(monkeypatch):
-    """A NaN error in the PD's memory made every later command NaN, which the guard
-    turned into 'stay': the arm froze for good, tracking by every count."""
+    """
+    A NaN error in the PD's memory made every later command NaN, which the guard
+    turned into 'stay': the arm froze for good, tracking by every count.
+    """
     from activeloc_ros.control import reactive
     ctl = make_controller()
     with monkeypatch.context() as patch:
@@ -213,8 +217,10 @@ def test_one_step_turns_by_the_error_within_the_speed_limit():
 
 
 def test_a_move_cut_short_by_the_speed_limit_is_finished_without_new_targets():
-    """The rest of a cut-short move comes with the locations it ignores (a moving
-    camera's frames), until it is done."""
+    """
+    The rest of a cut-short move comes with the locations it ignores (a moving
+    camera's frames), until it is done.
+    """
     ctl = make_controller(settle_time=0.3)
     ctl.observe(HOME_DEG, 0.0)
     cmd = ctl.on_location(pixel_for(10.0), D435.cy, 0.0, 0.02)
@@ -270,8 +276,10 @@ def test_locations_need_intrinsics_and_increasing_stamps():
 
 
 def test_a_stamp_from_the_future_is_ignored_and_does_not_block_later_locations():
-    """A frame stamped far ahead of the controller's clock (a wrong clock on the camera's
-    host) is turned away; accepted, every later, truthful stamp would look out of order."""
+    """
+    A frame stamped far ahead of the controller's clock (a wrong clock on the camera's
+    host) is turned away; accepted, every later, truthful stamp would look out of order.
+    """
     ctl = make_controller(settle_time=0.0)
     assert ctl.on_location(600.0, 240.0, 1e9, 1.1) is None
     assert ctl.ignored == {'stamp in the future': 1}
@@ -316,8 +324,10 @@ def test_watchdog_holds_once_then_stays_silent():
 
 @pytest.mark.parametrize('before', ['hold', 'dead band', 'track'])
 def test_a_foreign_pose_never_reaches_the_joints_that_do_not_aim(before):
-    """The hostile test's foreign command, reported back as the arm's state: the controller
-    still commands the gripper and the other fixed joints at home, whatever it sends."""
+    """
+    The hostile test's foreign command, reported back as the arm's state: the controller
+    still commands the gripper and the other fixed joints at home, whatever it sends.
+    """
     ctl = make_controller(watchdog_timeout=0.5,
                           pd=PDConfig(kp=1.0, kd=0.0, dead_band=math.radians(2.0)))
     foreign = (171.0, 15.0, 0.0, 151.0, 180.0, 10.0)
@@ -337,8 +347,10 @@ def test_a_foreign_pose_never_reaches_the_joints_that_do_not_aim(before):
 
 
 def test_after_the_clock_runs_back_a_restart_tracks_again_from_the_last_command():
-    """A bag replayed in a loop sends the clock back to its start. Without `restart` every
-    later location is out of order and the guard allows no motion until the clock is back."""
+    """
+    A bag replayed in a loop sends the clock back to its start. Without `restart` every
+    later location is out of order and the guard allows no motion until the clock is back.
+    """
     ctl = make_controller(settle_time=0.3)
     ctl.observe(HOME_DEG, 100.0)
     first = ctl.on_location(pixel_for(10.0), D435.cy, 100.0, 100.2)
@@ -354,8 +366,10 @@ def test_after_the_clock_runs_back_a_restart_tracks_again_from_the_last_command(
 
 
 def test_ignored_locations_run_the_watchdog_as_silence_does():
-    """A stream of locations it ignores (weak maps) is no location: after the timeout the
-    answer to one is the hold, once, in every driver (the benchmark has no timer)."""
+    """
+    A stream of locations it ignores (weak maps) is no location: after the timeout the
+    answer to one is the hold, once, in every driver (the benchmark has no timer).
+    """
     ctl = make_controller(watchdog_timeout=0.5, min_peak=0.01)
     assert ctl.on_location(pixel_for(20.0), D435.cy, 0.0, 0.0, peak=0.2) is not None
     rest = ctl.on_location(pixel_for(5.0), D435.cy, 0.4, 0.4, peak=0.005)
@@ -376,9 +390,11 @@ def test_after_a_hold_tracking_restarts_without_a_derivative_kick():
 
 
 def test_closed_loop_step_response_on_the_servo_model():
-    """A still action 20 deg to the left, 10 fps, servos at 50 deg/s (5 deg a frame): the
+    """
+    A still action 20 deg to the left, 10 fps, servos at 50 deg/s (5 deg a frame): the
     camera ramps there at the servos' speed and settles inside the dead band (the paper's
-    loop: acting on frames seen while moving)."""
+    loop: acting on frames seen while moving).
+    """
     from activeloc_ros.control import SimArm
     ctl = make_controller(pd=PDConfig(kp=1.0, kd=0.1, dead_band=math.radians(1.0)),
                           settle_time=0.0)
@@ -420,9 +436,11 @@ def test_latency_percentiles():
 
 
 def test_confirm_deg_moves_only_on_two_agreeing_locations():
-    """With confirm_deg, a location that calls for a move acts only when the previous still
+    """
+    With confirm_deg, a location that calls for a move acts only when the previous still
     frame's location pointed within confirm_deg of it (in the world); a moving camera's
-    frame in between breaks the chain; within the dead band nothing needs confirming."""
+    frame in between breaks the chain; within the dead band nothing needs confirming.
+    """
     ctl = make_controller(pd=PDConfig(dead_band=math.radians(2.0)), settle_time=0.3,
                           confirm_deg=5.0)
     for k in range(5):
@@ -450,8 +468,10 @@ def test_confirm_deg_moves_only_on_two_agreeing_locations():
 
 
 def test_confirm_deg_lets_a_decided_saccade_run_to_its_end():
-    """A command at the instant of the last joint state moves nothing yet (the servos'
-    speed); with confirm_deg the next location does not replace that move: it goes on."""
+    """
+    A command at the instant of the last joint state moves nothing yet (the servos'
+    speed); with confirm_deg the next location does not replace that move: it goes on.
+    """
     ctl = make_controller(settle_time=0.3, confirm_deg=5.0)
     for k in range(5):
         ctl.observe(HOME_DEG, k * 0.1)
@@ -465,8 +485,10 @@ def test_confirm_deg_lets_a_decided_saccade_run_to_its_end():
 
 
 def test_settle_time_ignores_frames_seen_by_a_moving_camera():
-    """With settle_time, a location counts only if the camera stood still for that long
-    before the frame was captured."""
+    """
+    With settle_time, a location counts only if the camera stood still for that long
+    before the frame was captured.
+    """
     ctl = make_controller(pd=PDConfig(dead_band=0.0), settle_time=0.3)
     still = list(HOME_DEG)
     moved = [HOME_DEG[0] + 5, *HOME_DEG[1:]]

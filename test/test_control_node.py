@@ -93,8 +93,10 @@ def test_a_location_becomes_a_command_with_its_stamp(graph):
 
 
 def test_on_simulated_time_a_location_waits_for_the_arms_state_at_its_stamp(graph):
-    """DDS may deliver a frame's location before the arm's state at the frame's time; the
-    controller then answers only once it knows where the camera was (as closed_loop)."""
+    """
+    DDS may deliver a frame's location before the arm's state at the frame's time; the
+    controller then answers only once it knows where the camera was (as closed_loop).
+    """
     executor, controller, probe = graph('use_sim_time:=true')
     home = JointState(name=list(JOINT_NAMES), position=[math.radians(q) for q in HOME_DEG])
     home.header.stamp = Time(sec=0, nanosec=200_000_000)
@@ -163,12 +165,14 @@ def test_pd_variant_overrides_the_gains(context):
 
 
 def test_closed_loop_with_the_sim_arm_centres_a_still_action(context):
-    """Controller + simulated arm + a virtual camera looking at an action 15 deg left and
+    """
+    Controller + simulated arm + a virtual camera looking at an action 15 deg left and
     8 deg up: the arm turns until the action is centred (within the dead band).
 
     Each view is stamped with the time of the joint state it was rendered from; stamped
     later, the controller pairs it with a newer pose and the loop can settle into a
-    two-step oscillation."""
+    two-step oscillation.
+    """
     from activeloc_ros.nodes.arm_node import ArmNode
     from activeloc_ros.nodes.controller_node import ControllerNode
     controller = ControllerNode(context=context, cli_args=params_args())
@@ -214,9 +218,11 @@ def test_closed_loop_with_the_sim_arm_centres_a_still_action(context):
 
 
 def test_a_clock_that_runs_back_restarts_the_controller_and_the_arm(context):
-    """A bag replayed in a loop with its /clock sends simulated time back to its start. The
+    """
+    A bag replayed in a loop with its /clock sends simulated time back to its start. The
     controller and the simulated arm go on from there; before, the arm stood still, and
-    every location was out of order, until the clock was back where it had been."""
+    every location was out of order, until the clock was back where it had been.
+    """
     from activeloc_ros.nodes.arm_node import ArmNode
     from activeloc_ros.nodes.controller_node import ControllerNode
     sim_time = 'use_sim_time:=true'

@@ -1,5 +1,7 @@
-"""The sequence loader: good folders stream RGB frames with their ground truth, bad ones
-raise DataError naming the file (and line)."""
+"""
+The sequence loader: good folders stream RGB frames with their ground truth, bad ones
+raise DataError naming the file (and line).
+"""
 import json
 import math
 from pathlib import Path

@@ -1,5 +1,7 @@
-"""The generated docs: the verdicts kept as data (a row made from a compare result, the page
-rendered from the data) and the parameters page made from the declarations, never stale."""
+"""
+The generated docs: the verdicts kept as data (a row made from a compare result, the page
+rendered from the data) and the parameters page made from the declarations, never stale.
+"""
 import json
 
 import pytest
@@ -16,8 +18,10 @@ def test_the_page_is_rendered_from_the_data():
 
 
 def _result(shifts: tuple) -> dict:
-    """A compare result of a candidate `shifts` degrees worse than its base, one sequence
-    each, the second seed 0.1 deg more."""
+    """
+    A compare result of a candidate `shifts` degrees worse than its base, one sequence
+    each, the second seed 0.1 deg more.
+    """
     base = {f's{i}': {0: 10.0 + i, 1: 10.5 + i} for i in range(len(shifts))}
     candidate = {n: {k: v + shift + 0.1 * k for k, v in r.items()}
                  for (n, r), shift in zip(base.items(), shifts)}

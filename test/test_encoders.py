@@ -1,4 +1,5 @@
-"""Encoders and their offline weights: shapes, real ImageNet behaviour, layouts and errors.
+"""
+Encoders and their offline weights: shapes, real ImageNet behaviour, layouts and errors.
 
 The pretrained tests read the weights cache that `python -m activeloc_ros.perception.weights
 fetch` fills; they skip where it is empty, except under CI (which fetches first), where an
@@ -36,8 +37,10 @@ TORCHVISION_VGG16_POOLS = (4, 9, 16, 23)
 
 @pytest.fixture(scope='module', autouse=True)
 def one_thread():
-    """One intra-op thread: on a shared 2-core box every op of a two-thread run waits at a
-    barrier for a descheduled thread (EfficientNet measured >10x slower). Restored after."""
+    """
+    One intra-op thread: on a shared 2-core box every op of a two-thread run waits at a
+    barrier for a descheduled thread (EfficientNet measured >10x slower). Restored after.
+    """
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     yield
@@ -345,8 +348,10 @@ def test_state_digest_survives_a_save_and_sees_one_changed_value():
 
 @pytest.mark.parametrize('damage', ['zeroed', 'one_value'])
 def test_a_cached_file_of_the_right_name_but_wrong_weights_is_refused(tmp_path, damage):
-    """A zeroed or altered file would load and give features of nothing: the digest the
-    cache file is named by must match."""
+    """
+    A zeroed or altered file would load and give features of nothing: the digest the
+    cache file is named by must match.
+    """
     require_cached('efficientnet_lite0')
     good = cache.weights_path('efficientnet_lite0')
     bad = tmp_path / good.name

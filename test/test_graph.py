@@ -88,8 +88,10 @@ def test_graph_in_one_executor(context):
 
 
 def test_destroying_the_camera_waits_for_a_tick_in_progress(context):
-    """rclpy's executor.shutdown does not wait for the callbacks a multi-threaded executor is
-    running: the camera closes its source after the tick's read, never under it."""
+    """
+    rclpy's executor.shutdown does not wait for the callbacks a multi-threaded executor is
+    running: the camera closes its source after the tick's read, never under it.
+    """
     from activeloc_ros.nodes.camera_node import CameraNode
     camera = CameraNode(context=context,
                         cli_args=params_args('wait_for_subscriber:=0.0'))
@@ -184,8 +186,10 @@ def run_bringup(*args, env, timeout):
 
 
 def test_bringup_processes_echo_and_record(tmp_path, graph_env):
-    """bringup runs the graph as processes; another process hears /surprise_map; the
-    recorded bag reads back with rosbags."""
+    """
+    bringup runs the graph as processes; another process hears /surprise_map; the
+    recorded bag reads back with rosbags.
+    """
     record = tmp_path / 'run'
     bringup = subprocess.Popen(
         [sys.executable, '-m', 'activeloc_ros.bringup', '--rate', '3', '--record', str(record),
@@ -218,9 +222,11 @@ def test_bringup_processes_echo_and_record(tmp_path, graph_env):
 
 
 def test_echo_hears_a_best_effort_publisher_by_a_relative_name(context, capsys):
-    """As ros2 topic echo: 'chatter' means /chatter, and a best-effort publisher (a camera
+    """
+    As ros2 topic echo: 'chatter' means /chatter, and a best-effort publisher (a camera
     driver's sensor QoS) is heard. Before, echo matched only '/chatter' and subscribed
-    reliably, so it heard neither."""
+    reliably, so it heard neither.
+    """
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import ReliabilityPolicy
     from std_msgs.msg import String
@@ -251,9 +257,11 @@ def test_echo_hears_a_best_effort_publisher_by_a_relative_name(context, capsys):
 @pytest.mark.parametrize('in_process', [False, True])
 def test_an_arm_link_that_gives_up_fails_the_run_in_either_form(tmp_path, graph_env,
                                                                 in_process):
-    """The arm node gives up on a serial port that never answers. As processes it exits 1;
+    """
+    The arm node gives up on a serial port that never answers. As processes it exits 1;
     --in-process read no node's failure, so the run went on commanding no arm and ended
-    '(source ended)' with exit code 0."""
+    '(source ended)' with exit code 0.
+    """
     result = run_bringup('--camera', f'bag:{SAMPLE}', '--arm', f'serial:{tmp_path / "ttyNONE"}',
                          '--log-dir', str(tmp_path / 'logs'),
                          *(['--in-process'] if in_process else []),
@@ -419,11 +427,13 @@ def test_bringup_stopped_by_a_signal_leaves_no_node_and_a_readable_bag(tmp_path,
                                         ('SIGTERM', 2.0), ('SIGTERM', 2.4), ('SIGINT', 3.5),
                                         ('SIGTERM', 5.0)])
 def test_a_stop_at_any_moment_of_the_start_is_clean(tmp_path, graph_env, how, after):
-    """A Ctrl-C or SIGTERM while bringup checks, while the nodes load torch, or while they
+    """
+    A Ctrl-C or SIGTERM while bringup checks, while the nodes load torch, or while they
     are being made: every node stops cleanly, no traceback anywhere, and the summary says
     it was stopped (the moments are seconds into a start that takes about ten here; those
     before two seconds land in the imports and checks, where a stop raised inside an
-    import once made Python end bringup with -2 after its summary)."""
+    import once made Python end bringup with -2 after its summary).
+    """
     logs = tmp_path / 'logs'
     bringup = subprocess.Popen(
         [sys.executable, '-m', 'activeloc_ros.bringup', '--duration', '30', '--log-dir',
@@ -481,9 +491,11 @@ def test_a_node_that_cannot_go_on_ends_the_run_with_its_reason_on_the_console(
 
 @pytest.mark.parametrize('node', ['controller', 'sim'])
 def test_a_node_stopped_the_moment_it_was_started_ends_cleanly(tmp_path, graph_env, node):
-    """A stop that reached a node process while Python itself was starting killed it (-2,
+    """
+    A stop that reached a node process while Python itself was starting killed it (-2,
     nothing in its log: the one sim -2 in a stop at 5 s, when bringup had just started the
-    source). bringup now sends the SIGINT once the process handles stops."""
+    source). bringup now sends the SIGINT once the process handles stops.
+    """
     from activeloc_ros.bringup import parse_args
     from activeloc_ros.supervisor import Child
     child = Child(node, parse_args([]), tmp_path, graph_env)

@@ -20,8 +20,10 @@ def test_compare_reports_the_largest_difference():
 
 
 def test_bundled_bag_graph_and_benchmark_agree(capfd, monkeypatch):
-    """bringup (four processes, real DDS, packaged params) against run_episode. The
-    recording holds every frame's map: the sim starts once bringup hears perception."""
+    """
+    bringup (four processes, real DDS, packaged params) against run_episode. The
+    recording holds every frame's map: the sim starts once bringup hears perception.
+    """
     monkeypatch.setenv('ROS_DOMAIN_ID', GRAPH_DOMAIN)
     assert graph_check.main(['--frames', '6']) == 0
     out = capfd.readouterr().out          # bringup's summary included

@@ -1,6 +1,8 @@
-"""The int8 encoder (`encoder_precision: int8`): built once from the sample bag's frames,
+"""
+The int8 encoder (`encoder_precision: int8`): built once from the sample bag's frames,
 cached, close to float32, and a clear error when it cannot be had. A tiny encoder and a
-few calibration frames keep the quantisation fast; nothing here measures time."""
+few calibration frames keep the quantisation fast; nothing here measures time.
+"""
 import os
 import time
 
@@ -20,10 +22,13 @@ SMALL = {'encoder': 'efficientnet_lite0', 'predictor_precision': 'float32', 'pre
 
 
 class TinyEncoder(nn.Module):
-    """(B, 3, 64, 64) -> (B, 8, 8, 8), ReLU features as a CNN trunk gives: three 3x3
+    """
+    (B, 3, 64, 64) -> (B, 8, 8, 8), ReLU features as a CNN trunk gives: three 3x3
     convolutions of stride 2, as real trunks are built. (An 8x8 convolution of stride 8 on
     16 channels came out of OpenVINO 2026.4 80% wrong on a Xeon with AMX, even in float32
-    IR under its default bfloat16 hint; 3x3 convolutions, VGG's, are right there.)"""
+    IR under its default bfloat16 hint; 3x3 convolutions, VGG's, are right there.)
+    """
+
     input_size = 64
     channels = 8
 
@@ -95,8 +100,10 @@ def test_a_damaged_int8_model_is_a_clear_error(cache):
 
 
 def test_an_int8_model_damaged_in_the_cache_is_found_by_its_hashes(cache, capsys):
-    """OpenVINO loads a .bin of the right size whatever its bytes: garbage features, no
-    error. A model without its hashes (a build cut short) is built again."""
+    """
+    OpenVINO loads a .bin of the right size whatever its bytes: garbage features, no
+    error. A model without its hashes (a build cut short) is built again.
+    """
     make('int8')
     binary, = (cache / 'int8').glob('*.bin')
     binary.write_bytes(bytes(len(binary.read_bytes())))

@@ -15,9 +15,11 @@ def test_one_publisher_is_no_problem_and_two_are_named():
 
 
 def test_a_second_controller_is_said_by_the_controller_and_the_arm(context):
-    """The hostile test: a second controller_node with the same name beside the graph.
+    """
+    The hostile test: a second controller_node with the same name beside the graph.
     Both controllers, the arm, and a watch like bringup's say so, once; and again when the
-    set of publishers changes; /diagnostics carries it."""
+    set of publishers changes; /diagnostics carries it.
+    """
     from diagnostic_msgs.msg import DiagnosticArray
     from activeloc_ros.nodes.arm_node import ArmNode
     from activeloc_ros.nodes.controller_node import ControllerNode

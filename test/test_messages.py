@@ -45,9 +45,11 @@ def test_a_joint_state_without_all_six_joints_is_none():
 
 @pytest.mark.parametrize('image_wh', [(320, 240), (640, 480), (1280, 720)])
 def test_a_blob_box_crosses_the_wire_unchanged(image_wh):
-    """The controller in the graph gets the very box the benchmark's controller gets: the
+    """
+    The controller in the graph gets the very box the benchmark's controller gets: the
     region's float32 corners lose nothing, so a lockstep graph does not part from the
-    benchmark (a box a rounding step off once sent a tracking episode elsewhere)."""
+    benchmark (a box a rounding step off once sent a tracking episode elsewhere).
+    """
     from geometry_msgs.msg import PolygonStamped
     from rclpy.serialization import deserialize_message, serialize_message
     from activeloc_ros.metrics import blob_box

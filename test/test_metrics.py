@@ -232,9 +232,11 @@ def test_blob_box_is_the_peak_cells_connected_blob():
 
 
 def test_blob_box_of_a_surprise_map_spans_the_person_not_only_its_head():
-    """A surprise map is a softmax of the error: the head most surprising, the body below
+    """
+    A surprise map is a softmax of the error: the head most surprising, the body below
     it less, the floor not at all. The blob reaches down to the feet, where the base reads
-    the person's distance; half the peak held the head alone."""
+    the person's distance; half the peak held the head alone.
+    """
     error = np.zeros((14, 14))
     error[3, 6] = 2.0              # head
     error[4:9, 6] = 0.6            # body, down to the feet in row 8

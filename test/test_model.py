@@ -1,4 +1,5 @@
-"""The online surprise model: shapes, learning, determinism, non-finite handling, checkpoints.
+"""
+The online surprise model: shapes, learning, determinism, non-finite handling, checkpoints.
 
 A small predictor and either the real encoders with random weights (`pretrained=False`) or a
 tiny stand-in encoder (64 px, 8 x 8 cells, features of order 1, so learning is visible
@@ -26,6 +27,7 @@ SMALL = {'encoder': 'efficientnet_lite0', 'encoder_precision': 'float32',
 
 class TinyEncoder(nn.Module):
     """The encoder interface in miniature: (B, 3, 64, 64) -> (B, 6, 8, 8)."""
+
     input_size = 64
     channels = 6
 
@@ -156,8 +158,10 @@ def test_input_height_must_be_whole_cells(height):
 
 @pytest.mark.parametrize('encoder', ['efficientnet_lite0', 'vgg19'])
 def test_reflect_conv_padding_gives_a_uniform_picture_the_same_features_in_every_cell(encoder):
-    """The border cells see mirrored picture, not zeros: with conv_padding reflect a grey
-    frame's cells are all alike; with the convolutions' zero padding the border differs."""
+    """
+    The border cells see mirrored picture, not zeros: with conv_padding reflect a grey
+    frame's cells are all alike; with the convolutions' zero padding the border differs.
+    """
     from activeloc_ros.perception.features import Features
 
     def spread(padding: str) -> float:
@@ -592,8 +596,10 @@ def test_an_untrained_residual_predictor_gives_the_motion_weighted_difference_ma
 
 @pytest.mark.parametrize('update_encoder', [False, True])
 def test_bfloat16_encoder_gives_float32_features_close_to_float32(update_encoder):
-    """encoder_precision only changes the encoder's arithmetic: the same features within
-    bfloat16's rounding, handed on in float32; the checkpointed weights stay float32."""
+    """
+    encoder_precision only changes the encoder's arithmetic: the same features within
+    bfloat16's rounding, handed on in float32; the checkpointed weights stay float32.
+    """
     frames = clip(2, h=224, w=224)
     features = {}
     for precision in ('float32', 'bfloat16'):
@@ -627,8 +633,10 @@ def test_auto_precision_takes_bfloat16_where_the_cpu_computes_it_natively(
 
 
 def test_bfloat16_predictor_changes_only_the_arithmetic():
-    """predictor_precision bfloat16 runs the predictor's products under autocast: the maps
-    and losses stay float32 and close to float32's, the weights and their updates too."""
+    """
+    predictor_precision bfloat16 runs the predictor's products under autocast: the maps
+    and losses stay float32 and close to float32's, the weights and their updates too.
+    """
     frames = clip(4)
     runs = {}
     for precision in ('float32', 'bfloat16'):
@@ -660,8 +668,10 @@ def test_frame_rms_normalises_every_frame():
 # -- the camera's own motion (ego_motion) -------------------------------------------------------
 
 def panning(n: int, *, step: int = 8, square: bool = False) -> list[np.ndarray]:
-    """A camera panning right over a still, textured scene: n (224, 224, 3) crops; with
-    `square`, a bright square also moves down the scene."""
+    """
+    A camera panning right over a still, textured scene: n (224, 224, 3) crops; with
+    `square`, a bright square also moves down the scene.
+    """
     rng = np.random.default_rng(3)
     scene = cv2.GaussianBlur((rng.random((240, 224 + step * n, 3)) * 255).astype(np.uint8),
                              (5, 5), 0)
@@ -700,8 +710,10 @@ def test_warp_cells_moves_state_with_the_view(dx, dy):
 
 
 def test_ego_motion_takes_the_pan_out_of_the_surprise():
-    """Panning over a still scene: compared in the new view, almost nothing changed; a
-    square moving in the scene is then where the map peaks."""
+    """
+    Panning over a still scene: compared in the new view, almost nothing changed; a
+    square moving in the scene is then where the map peaks.
+    """
     error = {}
     for mode in ('none', 'similarity'):
         model = make(real=True, ego_motion=mode, ego_warp='image')
@@ -715,8 +727,10 @@ def test_ego_motion_takes_the_pan_out_of_the_surprise():
 
 
 def test_ego_warp_of_the_features_takes_a_whole_cell_pan_out():
-    """Without a second encoder pass: the previous features move cell by cell, exact for a
-    pan of one cell (16 px) but for the edge the previous view did not see."""
+    """
+    Without a second encoder pass: the previous features move cell by cell, exact for a
+    pan of one cell (16 px) but for the edge the previous view did not see.
+    """
     error = {}
     for mode in ('none', 'similarity'):
         model = make(real=True, ego_motion=mode, ego_warp='features')

@@ -1,5 +1,7 @@
-"""Change detection with the camera's own motion taken out (perception.motion), and the
-unsupervised anchors of the screen table that use it (framediff, mog2)."""
+"""
+Change detection with the camera's own motion taken out (perception.motion), and the
+unsupervised anchors of the screen table that use it (framediff, mog2).
+"""
 import numpy as np
 import pytest
 
@@ -12,8 +14,10 @@ H, W = 240, 320
 
 
 def moving_target(n: int, *, step: int = 4):
-    """The trackers' target moving right over a richly textured still background (ORB
-    finds the background's motion, which is none, rather than the target's)."""
+    """
+    The trackers' target moving right over a richly textured still background (ORB
+    finds the background's motion, which is none, rather than the target's).
+    """
     rng = np.random.default_rng(3)
     bg = np.repeat(np.repeat(rng.integers(0, 255, (H // 4, W // 4, 3), np.uint8), 4, 0), 4, 1)
     frames = []

@@ -1,5 +1,7 @@
-"""The nodes' parameters: declared with a description, set by the package only where several
-nodes must agree (params/robot.yaml), and the other configurations' files valid."""
+"""
+The nodes' parameters: declared with a description, set by the package only where several
+nodes must agree (params/robot.yaml), and the other configurations' files valid.
+"""
 import math
 
 import pytest
@@ -27,8 +29,10 @@ def test_every_declared_parameter_has_a_description(context, name):
 
 
 def test_the_package_gives_its_nodes_only_the_robot_file():
-    """Defaults live in the declarations alone: a params file that repeated them would be a
-    second place a value has to be changed, and a stale copy would win over the code."""
+    """
+    Defaults live in the declarations alone: a params file that repeated them would be a
+    second place a value has to be changed, and a stale copy would win over the code.
+    """
     from activeloc_ros.paths import packaged_params_files
     assert [p.name for p in packaged_params_files()] == ['robot.yaml']
     for name in NODE_NAMES:
@@ -36,8 +40,10 @@ def test_the_package_gives_its_nodes_only_the_robot_file():
 
 
 def test_robot_yaml_is_declared_by_the_nodes_that_share_it(context):
-    """params/robot.yaml holds what several nodes must agree on, once: every key is a
-    parameter of at least two nodes, and each of them starts with the file's value."""
+    """
+    params/robot.yaml holds what several nodes must agree on, once: every key is a
+    parameter of at least two nodes, and each of them starts with the file's value.
+    """
     content = yaml.safe_load((PARAMS / 'robot.yaml').read_text())
     values = content['/**']['ros__parameters']
     sharing = {key: [] for key in values}
@@ -184,8 +190,10 @@ def test_rclpy_enforces_the_descriptor_ranges(context):
 @pytest.mark.parametrize('node, name', [('arm', 'stop_timeout'), ('arm', 'silence_timeout'),
                                         ('camera', 'rate'), ('controller', 'watchdog_timeout')])
 def test_an_open_ended_parameter_refuses_infinity(context, node, name):
-    """A positive parameter without an upper bound still needs a finite value: an infinite
-    silence timeout never notices a hung Arduino, an infinite stop timeout overflows the wait."""
+    """
+    A positive parameter without an upper bound still needs a finite value: an infinite
+    silence timeout never notices a hung Arduino, an infinite stop timeout overflows the wait.
+    """
     from rclpy.parameter import Parameter
     made = node_class(node)(context=context, cli_args=params_args())
     try:
@@ -210,8 +218,10 @@ def test_a_command_line_parameter_no_node_declares_is_refused_not_ignored(contex
 
 
 def test_bringup_waits_for_the_arms_own_stop_timeout_before_sigterm(tmp_path):
-    """It sent SIGTERM after 10 s and SIGKILL 3 s later whatever the arm's stop_timeout:
-    an arm going home slowly was killed on the way, its serial link still open."""
+    """
+    It sent SIGTERM after 10 s and SIGKILL 3 s later whatever the arm's stop_timeout:
+    an arm going home slowly was killed on the way, its serial link still open.
+    """
     from activeloc_ros.bringup import parse_args
     from activeloc_ros.supervisor import stop_deadline, STOP_DEADLINE_S
     assert stop_deadline('arm', parse_args([])) == 12.0     # its default 10 s, and 2 to spare

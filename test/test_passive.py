@@ -269,12 +269,14 @@ def test_auc_jitter_breaks_the_ties_of_a_one_hot_map(tmp_path):
 
 
 def test_a_panning_camera_leaves_the_peak_on_the_actor_not_the_border(data_root):
-    """Regression on real frames with real ImageNet features: a camera panning over a
+    """
+    Regression on real frames with real ImageNet features: a camera panning over a
     still-camera scene, where a peak away from the actor is the camera's own motion. With
     the convolutions' zero padding in view of the border cells (`encoder_pad=0`), the first
     30 frames of otb_walking2 put 66% of the peaks on the map's outer ring and 21% on the
     walker; with the mirrored border (`conv_padding=reflect`, the default until the protocol
-    returned it to the paper's zeros), 28% and 59% (a random cell: 27%)."""
+    returned it to the paper's zeros), 28% and 59% (a random cell: 27%).
+    """
     sequence = data.load_sequence(data_root / 'otb_walking2')
     method = passive.model_pointer(None, 'full', extra={'conv_padding': 'reflect'})
     tallies, _ = passive.run_sequence(sequence, [method], max_frames=30, warmup=1,

@@ -1,5 +1,7 @@
-"""The perception node as a ROS 2 user's camera meets it: QoS, compressed frames, a stamped
-map image, hostile sizes and its health on /diagnostics."""
+"""
+The perception node as a ROS 2 user's camera meets it: QoS, compressed frames, a stamped
+map image, hostile sizes and its health on /diagnostics.
+"""
 import time
 
 import cv2
@@ -93,8 +95,10 @@ def test_the_map_image_carries_the_frames_header(rig, pipeline):
 
 @pytest.mark.parametrize('pipeline', [False, True])
 def test_a_frame_stamped_before_1970_is_mapped_not_fatal(rig, pipeline):
-    """A stamp's seconds are an int32: -1 can come over a topic. rclpy's Time refuses it,
-    and computing the latency with it killed the node (with the pipeline: its learner)."""
+    """
+    A stamp's seconds are an int32: -1 can come over a topic. rclpy's Time refuses it,
+    and computing the latency with it killed the node (with the pipeline: its learner).
+    """
     from sensor_msgs.msg import Image
     executor, node, probe, heard = rig(f'pipeline:={str(pipeline).lower()}')
     publisher = probe.create_publisher(Image, 'camera/image_raw', 10)
@@ -103,8 +107,10 @@ def test_a_frame_stamped_before_1970_is_mapped_not_fatal(rig, pipeline):
 
 @pytest.mark.parametrize('pipeline', [False, True])
 def test_the_model_is_told_each_frames_capture_time(rig, pipeline):
-    """From the header's stamp: the motion weighting's scale follows the time between
-    frames (`motion_period`)."""
+    """
+    From the header's stamp: the motion weighting's scale follows the time between
+    frames (`motion_period`).
+    """
     from sensor_msgs.msg import Image
     executor, node, probe, heard = rig(f'pipeline:={str(pipeline).lower()}')
     publisher = probe.create_publisher(Image, 'camera/image_raw', 10)
@@ -141,9 +147,11 @@ def test_an_oversized_frame_is_skipped_and_reported(rig):
 
 @pytest.mark.parametrize('stamped', ['now', 'recorded'])
 def test_frames_mapped_after_the_next_capture_are_not_all_learnt_from(rig, stamped):
-    """A 1 kHz camera (its camera_info stamps): each map is ready after the next capture,
+    """
+    A 1 kHz camera (its camera_info stamps): each map is ready after the next capture,
     so with skip_late_updates 1 at most every second frame gets an optimiser step. Stamps
-    from a recording are no capture times: every frame is learnt from."""
+    from a recording are no capture times: every frame is learnt from.
+    """
     from sensor_msgs.msg import CameraInfo, Image
     executor, node, probe, heard = rig('skip_late_updates:=1')
     info_pub = probe.create_publisher(CameraInfo, 'camera/camera_info', 10)

@@ -1,6 +1,8 @@
-"""`SurpriseModel.learn` hands the map over before its optimiser step, and `Pipeline`
+"""
+`SurpriseModel.learn` hands the map over before its optimiser step, and `Pipeline`
 (observing the next frame while learning from this one) gives exactly what
-`SurpriseModel.step` gives, frame by frame; a failure surfaces in the caller."""
+`SurpriseModel.step` gives, frame by frame; a failure surfaces in the caller.
+"""
 import threading
 
 import numpy as np
@@ -96,8 +98,10 @@ def test_a_failure_while_learning_is_raised_in_the_callers_thread():
 
 
 def test_a_caller_that_asks_busy_learns_of_the_failure():
-    """The perception node asks `busy` before it takes a frame. After the learner died with
-    a frame waiting, `busy` stayed True for ever: every frame skipped, nothing raised."""
+    """
+    The perception node asks `busy` before it takes a frame. After the learner died with
+    a frame waiting, `busy` stayed True for ever: every frame skipped, nothing raised.
+    """
     queued = threading.Event()
 
     def publish(result, tag):

@@ -151,9 +151,11 @@ def test_make_sample_replaces_a_bag_but_never_another_folder(tmp_path, capsys):
 
 
 def test_a_type_the_bag_cannot_describe_is_left_out_and_named_not_fatal(tmp_path, context):
-    """nav_msgs/Goals is in the installed interfaces but not in rosbags' Jazzy types: its
+    """
+    nav_msgs/Goals is in the installed interfaces but not in rosbags' Jazzy types: its
     add_topic raised TypesysError out of the discovery timer, which ended the recorder (and
-    bringup's monitor with it) in the middle of the run."""
+    bringup's monitor with it) in the middle of the run.
+    """
     from nav_msgs.msg import Goals
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
@@ -185,8 +187,10 @@ def test_a_type_the_bag_cannot_describe_is_left_out_and_named_not_fatal(tmp_path
 
 
 def test_on_a_full_disk_the_recorder_counts_what_the_bag_holds(tmp_path, context):
-    """The summary listed 29 messages recorded while the bag held 15: the chunk being
-    written when the disk filled is lost, and the counts must say so."""
+    """
+    The summary listed 29 messages recorded while the bag held 15: the chunk being
+    written when the disk filled is lost, and the counts must say so.
+    """
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from std_msgs.msg import String

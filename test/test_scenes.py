@@ -1,5 +1,7 @@
-"""`bench scenes`: synthetic static-camera sequences from the tracking world's engine, read
-back by `data.load_sequence`. Tiny scenes (160x90, 8 frames) keep it fast."""
+"""
+`bench scenes`: synthetic static-camera sequences from the tracking world's engine, read
+back by `data.load_sequence`. Tiny scenes (160x90, 8 frames) keep it fast.
+"""
 import json
 
 import numpy as np
@@ -50,8 +52,10 @@ def test_scenes_load_as_static_sequences_with_the_actor_annotated_alone(seed3):
 
 
 def test_each_box_lies_where_the_camera_sees_the_actor_stand(seed3):
-    """The mask's box against the planned path through the camera model: the actor's
-    mid-body point projects inside its box."""
+    """
+    The mask's box against the planned path through the camera model: the actor's
+    mid-body point projects inside its box.
+    """
     for index in (0, 1):
         seq = data.load_sequence(seed3 / scenes.scene_name(index))
         with SyntheticClip(3, index, CONFIG) as clip:
@@ -64,8 +68,10 @@ def test_each_box_lies_where_the_camera_sees_the_actor_stand(seed3):
 
 
 def test_the_camera_never_moves(seed3):
-    """Outside the people's boxes the first and the last frame are the same picture (but
-    for H.264's noise and the people's shadows)."""
+    """
+    Outside the people's boxes the first and the last frame are the same picture (but
+    for H.264's noise and the people's shadows).
+    """
     for index in (0, 1):
         folder = seed3 / scenes.scene_name(index)
         seq = data.load_sequence(folder)

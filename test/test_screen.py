@@ -181,9 +181,11 @@ def test_lockstep_is_deterministic(tmp_path):
 
 
 class ComputeClock:
-    """The realtime benchmark's clock, moved on only by the pointers below, so each
+    """
+    The realtime benchmark's clock, moved on only by the pointers below, so each
     frame costs exactly their delay however busy the machine is (a loaded machine made
-    a real sleep overrun and dropped one frame more in one run than in the other)."""
+    a real sleep overrun and dropped one frame more in one run than in the other).
+    """
 
     def __init__(self):
         self.now = 0.0
@@ -224,8 +226,10 @@ def test_realtime_drops_frames_a_slow_pointer_cannot_take(tmp_path, clock):
 
 
 class EarlyOracle(SlowOracle):
-    """The slow oracle, with its answer ready at once (as the model's map is before its
-    optimiser step)."""
+    """
+    The slow oracle, with its answer ready at once (as the model's map is before its
+    optimiser step).
+    """
 
     def locate(self, view) -> Pointing:
         answer = super().locate(view)
@@ -243,8 +247,10 @@ def test_realtime_commands_leave_when_the_answer_is_ready_not_when_the_pointer_i
 
 
 class AskingOracle(OraclePointer):
-    """The oracle, taking ``delay`` s and then asking whether its frame is late (as the
-    model asks before its optimiser step)."""
+    """
+    The oracle, taking ``delay`` s and then asking whether its frame is late (as the
+    model asks before its optimiser step).
+    """
 
     def __init__(self, delay: float, clock: ComputeClock):
         super().__init__()
@@ -402,13 +408,15 @@ def test_tracker_methods_run_in_the_loop(tmp_path, capsys):
 
 
 def test_ours_does_not_follow_a_passing_car_off_the_screen(data_root, tmp_path, capsys):
-    """Regression on real frames, the faithful rig: on otb_crossing the argmax cell of the
+    """
+    Regression on real frames, the faithful rig: on otb_crossing the argmax cell of the
     map followed a passing car and then the screen's edge, out to the wall (in view 53%,
     AAE 42.6 deg; a camera that never moves: 23.4 deg). The centroid of the cells near
     the peak stays with the scene (in view 100%, 13.4-15.8 deg over 3 seeds). The PD law is
     pinned to kd 0 on the action's direction, the law this guard was set with: the paper's
     kd 0.1 on the error, the default since, loses the crossing by itself (docs/decisions.md,
-    38.7 deg on seed 0)."""
+    38.7 deg on seed 0).
+    """
     assert bench.main(['--data', str(data_root), '--sequences', 'otb_crossing', '--methods',
                        'ours', '--control', 'kd=0', 'derivative=target', '--jobs', '1',
                        '--json', '--no-video', '--quiet', '--out', str(tmp_path)]) == 0
@@ -418,8 +426,10 @@ def test_ours_does_not_follow_a_passing_car_off_the_screen(data_root, tmp_path, 
 
 
 def test_the_model_pointer_shares_only_a_frozen_encoder():
-    """An encoder that learns online starts every sequence from the same weights; a frozen
-    one is the same object, so it is not built again."""
+    """
+    An encoder that learns online starts every sequence from the same weights; a frozen
+    one is the same object, so it is not built again.
+    """
     from activeloc_ros.bench.pointers import ModelPointer
     import torch
     tiny = {'encoder': 'efficientnet_lite0', 'pretrained': False, 'hidden': 8,

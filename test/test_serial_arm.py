@@ -1,4 +1,5 @@
-"""The serial back end: the protocol, and BraccioLink against an emulated sketch on a pty.
+"""
+The serial back end: the protocol, and BraccioLink against an emulated sketch on a pty.
 
 The emulator and the link are stepped in the same simulated time (the emulator every 20 ms,
 like the sketch's loop), so these tests are deterministic and need no sleeps.
@@ -120,8 +121,10 @@ def test_the_newest_command_wins(bench):
 
 
 def test_a_lost_or_garbled_write_is_sent_again(bench):
-    """A write is sent once per new target: lost (no answer) or garbled on the way (the
-    sketch answers <e>), the arm stayed short of it, a hold or a stop's home pose for good."""
+    """
+    A write is sent once per new target: lost (no answer) or garbled on the way (the
+    sketch answers <e>), the arm stayed short of it, a hold or a stop's home pose for good.
+    """
     bench.run(0.1)
     bench.emulator.silent = True                    # this write is never answered
     bench.link.command([30, 40, 180, 170, 0, 73])
@@ -155,8 +158,10 @@ def test_noise_malformed_and_out_of_range_frames_are_counted_and_ignored(bench):
 
 
 def test_a_state_faster_than_the_servos_is_refused_as_implausible(bench):
-    """Serial garbage that happens to parse as a state (the hostile test: a 750 deg/s jump)
-    never becomes the arm's state; the real echo that follows does."""
+    """
+    Serial garbage that happens to parse as a state (the hostile test: a 750 deg/s jump)
+    never becomes the arm's state; the real echo that follows does.
+    """
     bench.run(0.2)
     here = bench.link.joints
     bench.emulator.inject(b'<s,170,40,100,10,150,20>')

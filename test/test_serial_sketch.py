@@ -1,4 +1,5 @@
-"""The real sketch, braccio_serial.ino, compiled for this machine with stand-ins for the
+"""
+The real sketch, braccio_serial.ino, compiled for this machine with stand-ins for the
 Arduino API, on a pseudo-terminal: BraccioLink against the code that runs on the board.
 
 Skipped where no C++ compiler is installed.

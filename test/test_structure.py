@@ -1,4 +1,5 @@
-"""The package's structure stays easy to change: no file over 500 lines, a README of at most
+"""
+The package's structure stays easy to change: no file over 500 lines, a README of at most
 300, and the ROS-free side importing no node module. `python test/test_structure.py` prints
 every problem.
 

@@ -1,5 +1,7 @@
-"""The tracker baselines: EdgeBoxes proposals on gradient edges, and each OpenCV tracker
-following a synthetic target from its first-frame proposal."""
+"""
+The tracker baselines: EdgeBoxes proposals on gradient edges, and each OpenCV tracker
+following a synthetic target from its first-frame proposal.
+"""
 import cv2
 import numpy as np
 import pytest

@@ -1,5 +1,7 @@
-"""The tracking experiment: AD-VAT's reward, the base controller, the pybullet world and a
-smoke run of `bench tracking` (one scene, one short episode)."""
+"""
+The tracking experiment: AD-VAT's reward, the base controller, the pybullet world and a
+smoke run of `bench tracking` (one scene, one short episode).
+"""
 import json
 import math
 import subprocess
@@ -86,8 +88,10 @@ def test_after_the_clock_runs_back_a_restart_lets_the_watchdog_stop_the_base():
 
 
 def test_a_heading_that_wraps_at_pi_turns_the_base_as_one_that_does_not():
-    """Odometry wraps the heading at +-pi; with a derivative gain the PD saw a 2 pi jump
-    there and, for a step, turned the base the wrong way at its top rate."""
+    """
+    Odometry wraps the heading at +-pi; with a derivative gain the PD saw a 2 pi jump
+    there and, for a step, turned the base the wrong way at its top rate.
+    """
     turns = []
     for second in (3.153, 3.153 - 2 * math.pi):
         ctl = BaseController(BaseConfig(pd=PDConfig.variant('paper')))
@@ -159,10 +163,12 @@ def test_the_range_sensor_reads_the_plan_the_base_bumps_into(x, y, degrees, expe
     (-1.0, 0.0, 0.2, 0.0, (-1.0, 0.0)),           # head-on into a person: stays
 ])
 def test_a_base_that_bumps_slides_along_what_it_touches(x, y, dx, dy, expected):
-    """The tracking world's base once stopped dead at any bump, and a base driving at the
+    """
+    The tracking world's base once stopped dead at any bump, and a base driving at the
     person with a tree between them stayed pinned until she was out of reach: the oracle
     lost her so in 14 of 60 episodes (seed 100: urban 5, snow 7, parking 2, docs/tracking.md).
-    It slides along walls, posts and people now."""
+    It slides along walls, posts and people now.
+    """
     plan = Plan((-5.0, -4.0, 5.0, 4.0), [(2.0, 0.0, 0.5)])
     movers = [(-0.3, 0.0, 0.3)] if x < 0 else []
     nx, ny = plan.slide(x, y, dx, dy, 0.3, movers=movers)
@@ -282,6 +288,7 @@ def test_oracle_follows_the_walker(tmp_path):
 
 class CornerPointer:
     """Points at the view's top-left corner with a box standing on its bottom edge."""
+
     name = 'corner'
 
     def reset(self, sequence):
@@ -361,8 +368,10 @@ def test_bench_tracking_refuses_an_out_path_under_a_file_before_any_episode(tmp_
 
 
 def test_bringup_runs_the_tracking_world_in_lockstep_as_the_benchmark_does(tmp_path, graph_env):
-    """tracking -> perception -> controller on simulated time: the base goes where the
-    benchmark's closed loop drives it, step for step, and the bag holds the world's topics."""
+    """
+    tracking -> perception -> controller on simulated time: the base goes where the
+    benchmark's closed loop drives it, step for step, and the bag holds the world's topics.
+    """
     record = tmp_path / 'run'
     steps = 12
     result = subprocess.run(
@@ -399,9 +408,11 @@ def test_bringup_runs_the_tracking_world_in_lockstep_as_the_benchmark_does(tmp_p
 
 
 def test_a_realtime_world_applies_cmd_vel_at_once_after_its_rate_is_raised(context):
-    """Commands were timed by the wall clock at the set rate and the world by its steps:
+    """
+    Commands were timed by the wall clock at the set rate and the world by its steps:
     raising the rate from 1 to 4 after 1 s put every later command 3 world-seconds in the
-    world's future (30 steps), as did a world that fell behind its wall clock."""
+    world's future (30 steps), as did a world that fell behind its wall clock.
+    """
     from geometry_msgs.msg import Twist as TwistMsg
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
@@ -456,8 +467,10 @@ def test_the_world_tells_its_controller_where_its_camera_sits():
 
 
 def test_the_papers_table1_row_is_in_its_columns():
-    """Paper Table 1, Ours: SnowVillage 0.68 / 0.16 (0.36), DuelingRoom 0.85 / 0.26 (0.41),
-    UrbanCity 0.75 / 0.14 (0.40), ParkingLot 0.49 / 0.23 (0.46)."""
+    """
+    Paper Table 1, Ours: SnowVillage 0.68 / 0.16 (0.36), DuelingRoom 0.85 / 0.26 (0.41),
+    UrbanCity 0.75 / 0.14 (0.40), ParkingLot 0.49 / 0.23 (0.46).
+    """
     from activeloc_ros.bench.tracking import PAPER_OURS
     from activeloc_ros.tracking.scenes import PAPER_NAMES
     by_paper_name = {PAPER_NAMES[s]: v for s, v in PAPER_OURS.items()}

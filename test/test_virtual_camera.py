@@ -1,5 +1,7 @@
-"""The virtual camera (the sim node: a scene on the virtual screen, the arm that aims the
-camera) and lockstep: core, nodes and the graph."""
+"""
+The virtual camera (the sim node: a scene on the virtual screen, the arm that aims the
+camera) and lockstep: core, nodes and the graph.
+"""
 import json
 import math
 from pathlib import Path
@@ -224,8 +226,10 @@ def test_bad_sim_settings(context, extra, message):
 
 
 def test_rate_is_refused_at_run_time_in_lockstep_and_applied_in_real_time(context):
-    """In lockstep the graph sets the pace, so a new rate would be reported as set and
-    never used: it is refused with the reason; in real time it is applied."""
+    """
+    In lockstep the graph sets the pace, so a new rate would be reported as set and
+    never used: it is refused with the reason; in real time it is applied.
+    """
     from rclpy.parameter import Parameter
     from activeloc_ros.nodes.sim_node import SimNode
     for extra, accepted in ((['lockstep:=true', SIM], False), ([], True)):
@@ -243,8 +247,10 @@ def test_rate_is_refused_at_run_time_in_lockstep_and_applied_in_real_time(contex
 
 
 class Probe:
-    """Records the camera's poses, images' stamps, the arm's states and the controller's
-    answers; sends joint commands."""
+    """
+    Records the camera's poses, images' stamps, the arm's states and the controller's
+    answers; sends joint commands.
+    """
 
     def __init__(self, context):
         from geometry_msgs.msg import PointStamped
@@ -322,10 +328,12 @@ def test_max_frames_ends_a_realtime_sim_too(context):
 
 
 def test_lockstep_graph_steps_frame_by_frame_like_closed_loop(context):
-    """The sim (lockstep), the real perception and controller on simulated time: every
+    """
+    The sim (lockstep), the real perception and controller on simulated time: every
     frame is processed and answered (a command or an ignored location), each image's stamp
     is i / fps, and the pose each frame was rendered with is where closed_loop's arm is
-    when every command is applied at its frame's time."""
+    when every command is applied at its frame's time.
+    """
     from rclpy.executors import MultiThreadedExecutor
     from activeloc_ros.nodes.controller_node import ControllerNode
     from activeloc_ros.nodes.perception_node import PerceptionNode
@@ -390,9 +398,11 @@ def test_bringup_refuses_bad_virtual_cameras_before_any_node(tmp_path, args, mes
 
 
 def test_bringup_aim_limits_are_the_arms_or_on_request_the_screens(tmp_path):
-    """As in the screen benchmark: by default only the arm limits the aim; with
+    """
+    As in the screen benchmark: by default only the arm limits the aim; with
     --aim-limits screen the controller gets the screen's aim limits, from the sim's
-    params files, unless the user's own files set them."""
+    params files, unless the user's own files set them.
+    """
     from activeloc_ros.bringup import parse_args
     from activeloc_ros.graph_plan import node_arguments
     wider = tmp_path / 'wider.yaml'

@@ -1,4 +1,5 @@
-"""Print a bag's facts, or make a bag cut off by a kill or a full disk readable.
+"""
+Print a bag's facts, or make a bag cut off by a kill or a full disk readable.
 
 Reading uses the `mcap` library directly, so both a rosbag2 folder (metadata.yaml + .mcap)
 and a bare .mcap file work. A bag whose writer died (killed, disk full) has no index and no

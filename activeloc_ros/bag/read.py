@@ -1,6 +1,8 @@
-"""Read MCAP bags: a rosbag2 folder (metadata.yaml + .mcap) or a bare .mcap file, with the
+"""
+Read MCAP bags: a rosbag2 folder (metadata.yaml + .mcap) or a bare .mcap file, with the
 `mcap` library directly (no ROS install needed): their facts, their image topic, their
-messages deserialised with the Jazzy typestore."""
+messages deserialised with the Jazzy typestore.
+"""
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -124,11 +126,13 @@ def choose_image_topic(facts: BagFacts, topic: str = '') -> TopicFacts:
 
 def read_messages(path: Path, topics: list[str], *, skipped: Counter | None = None
                   ) -> Iterator[tuple[str, str, int, object]]:
-    """Yield (topic, msgtype, log_time_ns, message) in log-time order, deserialised.
+    """
+    Yield (topic, msgtype, log_time_ns, message) in log-time order, deserialised.
 
     A message whose bytes do not deserialise is counted in ``skipped`` (by reason) and the
     rest is read on; without ``skipped`` it ends the reading with a SourceError naming the
-    message."""
+    message.
+    """
     from rosbags.serde import SerdeError
     store = typestore()
     for file in mcap_files(path):

@@ -1,6 +1,8 @@
-"""Recover a bag whose writer died (killed, disk full): it has no index and no
+"""
+Recover a bag whose writer died (killed, disk full): it has no index and no
 metadata.yaml. `reindex` keeps its complete chunks and writes both, as `ros2 bag reindex`
-does, and moves the bytes of the chunk the writer left unfinished to `<file>.incomplete`."""
+does, and moves the bytes of the chunk the writer left unfinished to `<file>.incomplete`.
+"""
 from dataclasses import dataclass, field
 from io import BytesIO
 import os
@@ -35,6 +37,7 @@ class _ChunkScan:
 @dataclass
 class McapScan:
     """What a sequential read of an .mcap file found before its end or its first damage."""
+
     schemas: dict[int, Schema] = field(default_factory=dict)
     channels: dict[int, Channel] = field(default_factory=dict)
     chunks: list[_ChunkScan] = field(default_factory=list)
@@ -84,8 +87,10 @@ def _scan_chunk(record: Chunk, start: int, length: int, scan: McapScan) -> _Chun
 
 
 def scan_mcap(file: Path) -> McapScan:
-    """Read `file` record by record up to its data section's end, or to the first record
-    that is incomplete or damaged; collect what an index of the sound part needs."""
+    """
+    Read `file` record by record up to its data section's end, or to the first record
+    that is incomplete or damaged; collect what an index of the sound part needs.
+    """
     scan = McapScan()
     size = file.stat().st_size
     open_run = False    # the newest chunk's message indexes may still be cut short
@@ -181,8 +186,10 @@ def _bag_info_yaml(files: list[tuple[Path, McapScan]], version: int = 9) -> dict
 
 
 def _append_index(file: Path, scan: McapScan, info_yaml: str) -> None:
-    """Cut `file` to its sound part, then append the newest chunk's message indexes,
-    rosbag2's metadata record, the summary and the footer."""
+    """
+    Cut `file` to its sound part, then append the newest chunk's message indexes,
+    rosbag2's metadata record, the summary and the footer.
+    """
     base = scan.keep_bytes
     out = RecordBuilder()
     if scan.reindex_last:
@@ -233,8 +240,10 @@ def _append_index(file: Path, scan: McapScan, info_yaml: str) -> None:
 
 
 def _keep_tail(file: Path, start: int) -> Path:
-    """Copy the bytes of `file` from `start` on, which `reindex` cuts off, to a file beside
-    it (not read as part of the bag), so that nothing the writer left is lost."""
+    """
+    Copy the bytes of `file` from `start` on, which `reindex` cuts off, to a file beside
+    it (not read as part of the bag), so that nothing the writer left is lost.
+    """
     tail = file.with_name(file.name + '.incomplete')
     with open(file, 'rb') as stream:           # at most the chunk being written
         stream.seek(start)
@@ -263,7 +272,8 @@ class ReindexReport:
 
 
 def reindex(path: Path) -> ReindexReport:
-    """Make a bag readable again after its writer died: each .mcap file without an index is
+    """
+    Make a bag readable again after its writer died: each .mcap file without an index is
     cut back to its last complete chunk and indexed; metadata.yaml is written anew. The
     bytes cut off go to `<file>.incomplete` beside it.
 

@@ -1,5 +1,7 @@
-"""Write rosbag2 MCAP bags with `rosbags`, which writes the metadata `ros2 bag info` reads.
-A write error (a full disk) closes the bag at its last complete chunk (`recover.reindex`)."""
+"""
+Write rosbag2 MCAP bags with `rosbags`, which writes the metadata `ros2 bag info` reads.
+A write error (a full disk) closes the bag at its last complete chunk (`recover.reindex`).
+"""
 from pathlib import Path
 from typing import Callable
 
@@ -13,7 +15,8 @@ class RecordingError(ActivelocError):
 
 
 class BagWriter:
-    """Write CDR messages to a rosbag2 MCAP bag (a folder with metadata.yaml).
+    """
+    Write CDR messages to a rosbag2 MCAP bag (a folder with metadata.yaml).
 
     A write error (a full disk...) ends the recording, not the program: the bag is cut back
     to its last complete chunk and indexed, so it reads up to the error, and RecordingError
@@ -66,8 +69,10 @@ class BagWriter:
         return self._store
 
     def close(self) -> None:
-        """Finish the bag (index, metadata.yaml). Raises RecordingError if it could not be
-        finished as written; the bag then holds what reached the disk before the error."""
+        """
+        Finish the bag (index, metadata.yaml). Raises RecordingError if it could not be
+        finished as written; the bag then holds what reached the disk before the error.
+        """
         if self.closed:
             if self.error is not None:
                 raise self.error

@@ -43,8 +43,10 @@ def check_seed(seed: int) -> None:
 
 
 def output_dir(path: str | Path, option: str = '--out') -> Path:
-    """The folder a benchmark writes to, made now: a path that is a file or cannot be made
-    fails before the run, not after it with the results lost. Raises ConfigError."""
+    """
+    The folder a benchmark writes to, made now: a path that is a file or cannot be made
+    fails before the run, not after it with the results lost. Raises ConfigError.
+    """
     out = Path(path)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -82,8 +84,10 @@ def add_sequence_options(p: argparse.ArgumentParser) -> None:
 
 def load_selected(args: argparse.Namespace
                   ) -> tuple[Path, list[data.Sequence], list[tuple[str, str]]]:
-    """(root, sequences, skipped) that `add_sequence_options` chose, the sequences in
-    camera-kind then name order; raises ActivelocError."""
+    """
+    (root, sequences, skipped) that `add_sequence_options` chose, the sequences in
+    camera-kind then name order; raises ActivelocError.
+    """
     root = data.resolve_data_root(args.data)
     sequences, skipped = data.load_sequences(root, names=names(args.sequences),
                                              cameras=args.camera)
@@ -95,8 +99,10 @@ def load_selected(args: argparse.Namespace
 
 
 def in_threads(run: Callable[[dict], dict], job: dict) -> dict:
-    """``run(job)`` with torch's and OpenCV's thread counts set to ``job['threads']`` (when
-    set), then back to the process's (with --jobs 1 that is the caller's process)."""
+    """
+    ``run(job)`` with torch's and OpenCV's thread counts set to ``job['threads']`` (when
+    set), then back to the process's (with --jobs 1 that is the caller's process).
+    """
     import cv2
     import torch
     before = torch.get_num_threads(), cv2.getNumThreads()
@@ -117,8 +123,10 @@ def _ignore_sigint() -> None:
 
 def run_jobs(run_job: Callable[[dict], dict], work: list[dict], *, jobs: int
              ) -> Iterator[dict]:
-    """The results of ``run_job`` (a module-level function) over ``work``: in this process
-    for one job, else in ``jobs`` spawned worker processes, as they finish."""
+    """
+    The results of ``run_job`` (a module-level function) over ``work``: in this process
+    for one job, else in ``jobs`` spawned worker processes, as they finish.
+    """
     if jobs == 1:
         yield from map(run_job, work)
         return

@@ -1,4 +1,5 @@
-"""The selection protocol: is a candidate configuration better than a base, or was it luck?
+"""
+The selection protocol: is a candidate configuration better than a base, or was it luck?
 
     python -m activeloc_ros.bench compare --base ours --candidate 'ours --set location=peak'
     python -m activeloc_ros.bench compare --base ours-paper --candidate ours mog2
@@ -49,8 +50,10 @@ def _side_parser() -> argparse.ArgumentParser:
 
 
 def parse_side(spec: str) -> dict:
-    """A side from its words: ``METHOD [--set K=V ...] [--control K=V ...] [--params F]``
-    or ``saved:FILE[#K]``. Raises ConfigError."""
+    """
+    A side from its words: ``METHOD [--set K=V ...] [--control K=V ...] [--params F]``
+    or ``saved:FILE[#K]``. Raises ConfigError.
+    """
     if spec.startswith('saved:'):
         return {'label': spec, 'saved': spec[len('saved:'):]}
     try:
@@ -71,8 +74,10 @@ def parse_side(spec: str) -> dict:
 
 
 def load_saved(where: str, metric: str) -> protocol.Scores:
-    """The scores of a saved side: ``FILE#K`` (compare.json, side K; default 0) or
-    ``GLOB#METHOD`` (screen.json files of ``bench screen``, one per seed)."""
+    """
+    The scores of a saved side: ``FILE#K`` (compare.json, side K; default 0) or
+    ``GLOB#METHOD`` (screen.json files of ``bench screen``, one per seed).
+    """
     path, _, which = where.partition('#')
     files = sorted(glob.glob(path))
     if not files:
@@ -125,8 +130,10 @@ def _run(job: dict) -> dict:
 def run_sides(sides: list[dict], sequences: list[data.Sequence], seeds: list[int], *,
               common: dict, metric: str, jobs: int, cache_dir: Path, quiet: bool
               ) -> list[protocol.Scores]:
-    """Every side's scores (``{sequence: {seed: metric}}``), the runs in ``jobs`` worker
-    processes. A failed run stops the comparison: a side missing a sequence is no pair."""
+    """
+    Every side's scores (``{sequence: {seed: metric}}``), the runs in ``jobs`` worker
+    processes. A failed run stops the comparison: a side missing a sequence is no pair.
+    """
     threads = max(1, (os.cpu_count() or 1) // jobs)
     code = _fingerprint()
     work = []

@@ -1,4 +1,5 @@
-"""The verdicts on the defaults, kept as data (docs/decisions.yaml) and rendered to a page.
+"""
+The verdicts on the defaults, kept as data (docs/decisions.yaml) and rendered to a page.
 
     python -m activeloc_ros.bench decisions add out/cmp/x/compare.json --candidate 1 \\
         --setting motion --value abs_sigmoid --against sigmoid --set synthetic --decision kept
@@ -69,8 +70,10 @@ def row_problem(row) -> str | None:
 
 
 def row_from_compare(result: dict, side: int, **fields) -> dict:
-    """A row from a compare.json `result`: its comparison of candidate side `side` (1 = the
-    first) with the base; `fields` the row's other fields."""
+    """
+    A row from a compare.json `result`: its comparison of candidate side `side` (1 = the
+    first) with the base; `fields` the row's other fields.
+    """
     try:
         comparison = next(c for c in result['comparisons'] if c['candidate'] == side)
     except (KeyError, StopIteration):
@@ -96,8 +99,10 @@ def row_from_compare(result: dict, side: int, **fields) -> dict:
 
 
 def render(content: dict) -> str:
-    """The page: the preamble, then one table of every row (the candidate's difference
-    from the default), then each row's command, date, CPU and note."""
+    """
+    The page: the preamble, then one table of every row (the candidate's difference
+    from the default), then each row's command, date, CPU and note.
+    """
     rows = content['rows']
     lines = ['# Decisions on the defaults', '',
              '<!-- rendered from decisions.yaml by `python -m activeloc_ros.bench decisions '

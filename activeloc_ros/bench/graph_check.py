@@ -1,4 +1,5 @@
-"""Is the ROS graph what the screen benchmark measures? Run both on one scene and compare.
+"""
+Is the ROS graph what the screen benchmark measures? Run both on one scene and compare.
 
     python -m activeloc_ros.bench graph-check --scene otb_crossing --frames 40
 

@@ -1,4 +1,5 @@
-"""The benchmarks' methods, and how each one's perception and controller are assembled.
+"""
+The benchmarks' methods, and how each one's perception and controller are assembled.
 
 A method is a name: ``ours`` (the defaults), a paper Table 3 row (``ours-no_attn``,
 ``ours-pd-low_p``...), a preset of a params file (``ours-paper``: params/paper.yaml, the
@@ -26,8 +27,10 @@ TRACKER_METHODS = ('tld', 'mil', 'mosse', 'kcf', 'csrt')
 
 
 def table3_methods(pd: PDConfig) -> tuple[str, ...]:
-    """The model's rows of the paper's Table 3 for a controller whose own law is ``pd``: the
-    perception's ablations, then the PD variants whose gains differ from its own."""
+    """
+    The model's rows of the paper's Table 3 for a controller whose own law is ``pd``: the
+    perception's ablations, then the PD variants whose gains differ from its own.
+    """
     return ('ours', *(f'ours-{a}' for a in ABLATIONS if a != 'full'),
             *(f'ours-pd-{v}' for v, gains in PD_VARIANTS.items() if gains != (pd.kp, pd.kd)))
 
@@ -39,8 +42,10 @@ METHODS = (*MODEL_METHODS, 'random', 'centre', 'oracle', *MOTION_METHODS, *TRACK
 
 
 def method_parts(name: str) -> tuple[dict, str | None]:
-    """(PerceptionConfig overrides, PD variant or None for the default gains) of a model
-    method name."""
+    """
+    (PerceptionConfig overrides, PD variant or None for the default gains) of a model
+    method name.
+    """
     if name == 'ours':
         return {}, None
     if name in PRESETS:
@@ -53,8 +58,10 @@ def method_parts(name: str) -> tuple[dict, str | None]:
 
 
 def make_pointer(name: str, settings: dict, seed: int, *, tracker_start: str = 'proposal'):
-    """The pointer of a method (model methods get `settings` + their ablation; trackers start
-    on an EdgeBoxes proposal, or with ``tracker_start='truth'`` on the target's true box)."""
+    """
+    The pointer of a method (model methods get `settings` + their ablation; trackers start
+    on an EdgeBoxes proposal, or with ``tracker_start='truth'`` on the target's true box).
+    """
     if name in TRACKER_METHODS:
         return TrackerMethod(name, start=tracker_start)
     if name == 'random':
@@ -80,9 +87,11 @@ CONTROL_OPTIONS = ('settle_time', 'watchdog_timeout', 'step_delay_ms', 'min_peak
 
 
 def method_pd(name: str, control: dict) -> PDConfig:
-    """The PD law of a method: its Table 3 variant's gains (whatever --control says of kp and
+    """
+    The PD law of a method: its Table 3 variant's gains (whatever --control says of kp and
     kd), else the default's, with the `PD_PARAMS` among the --control settings: the
-    controller node's names and units (``dead_band_deg`` in degrees)."""
+    controller node's names and units (``dead_band_deg`` in degrees).
+    """
     return pd_from(control, _pd_variant(name))
 
 
@@ -93,9 +102,11 @@ def _pd_variant(name: str) -> str:
 
 def controller_for(name: str, control: dict, screen: VirtualScreen | None = None
                    ) -> ControllerConfig:
-    """The controller of a method: its PD variant plus the --control settings; with a
+    """
+    The controller of a method: its PD variant plus the --control settings; with a
     `screen`, aimed no farther than its view stays on the screen (unless set; the
-    `--aim-limits screen` rig)."""
+    `--aim-limits screen` rig).
+    """
     unknown = sorted(set(control) - set(PD_PARAMS) - set(CONTROL_OPTIONS))
     if unknown:
         raise ConfigError(f'unknown --control settings {unknown}; known: '
@@ -118,14 +129,17 @@ def controller_for(name: str, control: dict, screen: VirtualScreen | None = None
 
 
 def control_from_node(values: dict) -> dict:
-    """The controller node's parameter values as the benchmarks' --control settings: the
+    """
+    The controller node's parameter values as the benchmarks' --control settings: the
     PD law's and the arm's, under the same names; the base's and the node's own parameters
-    have no place on the screen."""
+    have no place on the screen.
+    """
     return {k: v for k, v in values.items() if k in PD_PARAMS + CONTROL_OPTIONS}
 
 
 def params_file(path: str | Path) -> tuple[dict, dict]:
-    """(PerceptionConfig settings, --control settings) that a ROS 2 params file gives the
+    """
+    (PerceptionConfig settings, --control settings) that a ROS 2 params file gives the
     perception and controller nodes, checked as the nodes check it.
 
     :raises ConfigError: no such file, or a key or value the nodes would refuse.

@@ -1,4 +1,5 @@
-"""Passive benchmark: with the camera fixed, does the map's peak fall on the annotated actor?
+"""
+Passive benchmark: with the camera fixed, does the map's peak fall on the annotated actor?
 
 Every sequence is streamed once; each frame goes to every method (the perception model
 under each requested encoder / ablation, and the baselines). Each is a `closed_loop.Pointer`,
@@ -56,8 +57,10 @@ ABLATIONS = tuple(name for name, fields in MODEL_ROWS.items() if 'encoder' not i
 
 def model_pointer(encoder: str | None, ablation: str, *, seed: int = 0,
                   extra: dict | None = None) -> ModelPointer:
-    """The perception model of one row, named model:ENCODER/ABLATION (a paper Table 3 row,
-    `bench.pointers.ABLATIONS`), fresh for every sequence as in the screen benchmark."""
+    """
+    The perception model of one row, named model:ENCODER/ABLATION (a paper Table 3 row,
+    `bench.pointers.ABLATIONS`), fresh for every sequence as in the screen benchmark.
+    """
     if ablation not in ABLATIONS:
         raise ActivelocError(f'unknown ablation {ablation!r}; choose from '
                              f'{", ".join(ABLATIONS)}')
@@ -71,9 +74,11 @@ def model_pointer(encoder: str | None, ablation: str, *, seed: int = 0,
 
 
 class PanningCamera:
-    """A camera on the virtual screen that moves by itself: pan in moves of `step_deg` a
+    """
+    A camera on the virtual screen that moves by itself: pan in moves of `step_deg` a
     frame for `move` frames, then still for `hold` frames, turning back at +-`amplitude_deg`;
-    tilt the same at half the size. Deterministic."""
+    tilt the same at half the size. Deterministic.
+    """
 
     def __init__(self, amplitude_deg: float, *, step_deg: float = 2.0, move: int = 4,
                  hold: int = 4) -> None:
@@ -97,8 +102,10 @@ class PanningCamera:
 
     def frames(self, sequence: data.Sequence, *, max_frames: int | None
                ) -> Iterator[tuple[data.Sample, bool, tuple[float, float]]]:
-        """The sequence as this camera sees it: (sample in camera pixels, moved since the
-        previous frame, (pan, tilt) in radians)."""
+        """
+        The sequence as this camera sees it: (sample in camera pixels, moved since the
+        previous frame, (pan, tilt) in radians).
+        """
         limit = len(sequence) if max_frames is None else min(len(sequence), max_frames)
         poses = self.poses(limit)
         wh = (sequence.width, sequence.height)
@@ -149,7 +156,8 @@ def run_sequence(sequence: data.Sequence, methods: list[Pointer], *, max_frames:
                  warmup: int, progress: Progress | None = None,
                  frames_out: list | None = None, auc_jitter: bool = False,
                  camera: PanningCamera | None = None) -> tuple[dict[str, Tally], float]:
-    """Stream one sequence through every method; returns the tallies and the mean chance
+    """
+    Stream one sequence through every method; returns the tallies and the mean chance
     hit rate of its scored frames.
 
     :param auc_jitter: break AUC ties at random (the MIT code's `jitter`), seeded per
@@ -203,8 +211,10 @@ def run_sequence(sequence: data.Sequence, methods: list[Pointer], *, max_frames:
 
 
 def view_of(sample: data.Sample, fps: float, *, pan: float = 0.0, tilt: float = 0.0) -> View:
-    """What a pointer is shown of a sample: its image, taken at `world.frame_time` by a
-    camera at (pan, tilt), radians."""
+    """
+    What a pointer is shown of a sample: its image, taken at `world.frame_time` by a
+    camera at (pan, tilt), radians.
+    """
     h, w = sample.image.shape[:2]
     actors = np.array([pixel_centre(b) for b in sample.truth.actors], np.float64)
     return View(sample.image, sample.index, frame_time(sample.index, fps), pan, tilt,
@@ -213,9 +223,11 @@ def view_of(sample: data.Sample, fps: float, *, pan: float = 0.0, tilt: float = 
 
 def heat_and_point(pointing: Pointing, image_wh: tuple[int, int]
                    ) -> tuple[np.ndarray, tuple[float, float]]:
-    """The map and the point a pointer's answer is scored by: a measured map (one with a
+    """
+    The map and the point a pointer's answer is scored by: a measured map (one with a
     peak) at its peak cell; a prior (the centre's) at the pointer's location; no map at all
-    (a first frame) as a uniform map, at its first cell like any flat map."""
+    (a first frame) as a uniform map, at its first cell like any flat map.
+    """
     heat = pointing.heat
     if heat is None:
         heat = np.full(GRID, 1.0 / (GRID[0] * GRID[1]), np.float32)
@@ -228,8 +240,10 @@ def evaluate(sequences: list[data.Sequence], methods: list[Pointer], *,
              max_frames: int | None = None, warmup: int = 1, quiet: bool = False,
              keep_frames: bool = False, auc_jitter: bool = False,
              camera: PanningCamera | None = None) -> dict:
-    """Run every method over every sequence; a sequence whose frames turn out bad is
-    dropped for all methods and listed under 'skipped'."""
+    """
+    Run every method over every sequence; a sequence whose frames turn out bad is
+    dropped for all methods and listed under 'skipped'.
+    """
     total = sum(len(s) if max_frames is None else min(len(s), max_frames) for s in sequences)
     progress = None if quiet else Progress(total, 'passive')
     per_seq: dict[str, dict[str, Tally]] = {}

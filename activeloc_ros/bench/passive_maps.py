@@ -1,5 +1,7 @@
-"""The passive benchmark's reference maps on its 14 x 14 grid: chance, the centre prior and
-frame differencing."""
+"""
+The passive benchmark's reference maps on its 14 x 14 grid: chance, the centre prior and
+frame differencing.
+"""
 import zlib
 
 import cv2
@@ -31,8 +33,10 @@ class RandomMap:
 
 
 class CentreBias:
-    """Always the image centre; its map, a centred Gaussian, is a prior to score (AUC), not
-    a measurement, so it has no peak and its hits are scored at the centre itself."""
+    """
+    Always the image centre; its map, a centred Gaussian, is a prior to score (AUC), not
+    a measurement, so it has no peak and its hits are scored at the centre itself.
+    """
 
     name = 'centre'
 

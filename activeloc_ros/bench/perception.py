@@ -1,4 +1,5 @@
-"""Per-frame cost of the perception model, online update included.
+"""
+Per-frame cost of the perception model, online update included.
 
 For each encoder and each encoder-update setting, a fresh process builds a `SurpriseModel` and
 steps it through N frames of a video or of a synthetic moving scene, then reports the
@@ -148,8 +149,10 @@ def describe_cpu(cpu: dict[str, Any]) -> str:
 
 
 def matmul_peak_gflops(dtype_name: str, *, n: int = 2048, seconds: float = 1.0) -> float:
-    """GFLOP/s (int8: GOP/s) of an n x n matmul in this dtype on torch's current threads
-    (the best of repeated timings for about `seconds`)."""
+    """
+    GFLOP/s (int8: GOP/s) of an n x n matmul in this dtype on torch's current threads
+    (the best of repeated timings for about `seconds`).
+    """
     import torch
     if dtype_name == 'int8':      # int8 x int8 -> int32, as the int8 encoder's convolutions
         a = torch.randint(-128, 128, (n, n), dtype=torch.int8)
@@ -193,8 +196,10 @@ def is_default(config: dict[str, Any]) -> bool:
 
 
 def stage_gflop(model, frame: np.ndarray) -> dict[str, float]:
-    """GFLOP of one frame's encode, predict (forward) and update (the extra backward) on a
-    model that has seen at least two frames."""
+    """
+    GFLOP of one frame's encode, predict (forward) and update (the extra backward) on a
+    model that has seen at least two frames.
+    """
     import torch
     from torch.utils.flop_counter import FlopCounterMode
 
@@ -348,8 +353,10 @@ def weight_settings(args: argparse.Namespace) -> dict[str, Any]:
 
 def feature_gaps(root: str | None, *, encoder: str, every: int, threads: int,
                  extra: dict[str, Any]) -> list[dict[str, Any]]:
-    """Per precision, the relative L2 distance of its encoder features from float32's on
-    every `every`-th frame of the sequences under `root`: mean, max and frames."""
+    """
+    Per precision, the relative L2 distance of its encoder features from float32's on
+    every `every`-th frame of the sequences under `root`: mean, max and frames.
+    """
     import torch
 
     from activeloc_ros import data

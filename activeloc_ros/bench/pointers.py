@@ -1,4 +1,5 @@
-"""What steers the camera in the projected-screen benchmark: the model and the baselines.
+"""
+What steers the camera in the projected-screen benchmark: the model and the baselines.
 
 Each is a ``closed_loop.Pointer``; the trackers are in ``bench.trackers``. All of them
 drive the same controller and arm.
@@ -24,7 +25,8 @@ ABLATIONS: dict[str, dict] = {
 
 
 class ModelPointer:
-    """The perception model, fresh (same seed) for every sequence. Its encoder is shared
+    """
+    The perception model, fresh (same seed) for every sequence. Its encoder is shared
     between sequences only when frozen: one that learns online starts again from its
     weights, so nothing learned on one sequence carries into the next.
 
@@ -48,9 +50,11 @@ class ModelPointer:
         self._fresh = False
 
     def locate(self, view: View) -> Pointing:
-        """The model's step; its location is ready when its map is, before the optimiser
+        """
+        The model's step; its location is ready when its map is, before the optimiser
         step, as the perception node publishes it, and a late frame's step is skipped as
-        the node skips it."""
+        the node skips it.
+        """
         t0 = time.perf_counter()
         ready: list[float] = []
         result = self.model.step(view.rgb, t=view.t,
@@ -64,7 +68,8 @@ class ModelPointer:
 
 
 class TrackerMethod:
-    """An OpenCV tracker baseline (``bench.trackers``) started on the first camera frame,
+    """
+    An OpenCV tracker baseline (``bench.trackers``) started on the first camera frame,
     steering to its box centre.
 
     :param start: ``'proposal'``: from the best EdgeBoxes proposal (the paper's screen
@@ -102,7 +107,8 @@ class CentrePointer:
 
 
 class RandomPointer:
-    """Paper: 'a random location around the center of the screen' each frame, steered to.
+    """
+    Paper: 'a random location around the center of the screen' each frame, steered to.
 
     :param spread: standard deviation of the target around the screen centre, as a share of
         the camera image size (its width and height).
@@ -129,9 +135,11 @@ class RandomPointer:
 
 
 class OraclePointer:
-    """The ground truth fed to the controller (the primary actor, else the closest one):
+    """
+    The ground truth fed to the controller (the primary actor, else the closest one):
     the upper bound, limited only by the arm. Points beyond the image are pulled in to its
-    border, where the controller takes them."""
+    border, where the controller takes them.
+    """
 
     name = 'oracle'
 
@@ -152,9 +160,11 @@ class OraclePointer:
 
 
 def _map_pointing(heat: np.ndarray | None, image_wh: tuple[int, int]) -> Pointing:
-    """A pointer's answer from a non-negative map: its peak cell, the map normalised to sum
+    """
+    A pointer's answer from a non-negative map: its peak cell, the map normalised to sum
     1, and its peak value, which the controller's information rule (`min_peak`) judges as it
-    judges the model's. No map, or nothing in it: no location."""
+    judges the model's. No map, or nothing in it: no location.
+    """
     total = 0.0 if heat is None else float(heat.sum())
     if not total > 0:
         return Pointing(None)
@@ -163,8 +173,10 @@ def _map_pointing(heat: np.ndarray | None, image_wh: tuple[int, int]) -> Pointin
 
 
 class FrameDiffPointer:
-    """Frame differencing with the camera's own motion taken out as the model's is
-    (`perception.motion.FrameDifference`): steers to the cell that changed most."""
+    """
+    Frame differencing with the camera's own motion taken out as the model's is
+    (`perception.motion.FrameDifference`): steers to the cell that changed most.
+    """
 
     def __init__(self, name: str = 'framediff'):
         from activeloc_ros.perception.motion import FrameDifference
@@ -180,8 +192,10 @@ class FrameDiffPointer:
 
 
 class FlowPointer:
-    """The length of DIS dense optical flow, the camera's own motion taken out as for
-    framediff (`perception.motion.FlowMagnitude`): steers to the cell that moved most."""
+    """
+    The length of DIS dense optical flow, the camera's own motion taken out as for
+    framediff (`perception.motion.FlowMagnitude`): steers to the cell that moved most.
+    """
 
     name = 'flow'
 
@@ -198,7 +212,8 @@ class FlowPointer:
 
 
 class Mog2Pointer:
-    """OpenCV's BackgroundSubtractorMOG2: steers to the centroid of the foreground. The
+    """
+    OpenCV's BackgroundSubtractorMOG2: steers to the centroid of the foreground. The
     background model starts again whenever the camera moved (the same ego-motion estimate
     as framediff's), since a moved view is all foreground to it.
 

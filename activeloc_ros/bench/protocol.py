@@ -1,4 +1,5 @@
-"""The selection protocol's statistics: is a candidate better than a base, or was it luck?
+"""
+The selection protocol's statistics: is a candidate better than a base, or was it luck?
 
 Pure numpy, no runs. A side's scores are ``{sequence: {seed: value}}`` (lower is better,
 e.g. mean AAE). The sequence is the unit that must generalise, so the interval comes from a
@@ -22,7 +23,8 @@ BETTER, WORSE, LEVEL = 'better', 'worse', 'no difference'
 
 @dataclass(frozen=True)
 class Comparison:
-    """A candidate against a base, over the sequences both have.
+    """
+    A candidate against a base, over the sequences both have.
 
     :param per_sequence: candidate minus base, each sequence's mean over its seeds.
     :param mean: the mean of `per_sequence`.
@@ -58,8 +60,10 @@ def _check(scores: Scores, name: str) -> None:
 
 def _draws(rng: np.random.Generator, base: dict[int, float], cand: dict[int, float],
            count: int) -> np.ndarray:
-    """``count`` bootstrap draws of a sequence's difference: its seeds drawn with
-    replacement, the two runs of a seed together where both sides ran the same seeds."""
+    """
+    ``count`` bootstrap draws of a sequence's difference: its seeds drawn with
+    replacement, the two runs of a seed together where both sides ran the same seeds.
+    """
     if sorted(base) == sorted(cand):
         d = np.array([cand[s] - base[s] for s in sorted(base)])
         return d[rng.integers(0, len(d), size=(count, len(d)))].mean(axis=1)
@@ -70,7 +74,8 @@ def _draws(rng: np.random.Generator, base: dict[int, float], cand: dict[int, flo
 
 def compare(base: Scores, candidate: Scores, *, resamples: int = 10000,
             seed: int = 0) -> Comparison:
-    """The candidate's paired difference from the base, with its 95% interval.
+    """
+    The candidate's paired difference from the base, with its 95% interval.
 
     :param resamples: bootstrap draws.
     :param seed: the bootstrap's own seed, so a report is reproduced exactly.
@@ -102,7 +107,8 @@ def sequence_means(scores: Scores) -> dict[str, float]:
 
 @dataclass(frozen=True)
 class LeaveOneOut:
-    """Choosing among several values by the protocol, scored on a sequence it did not see.
+    """
+    Choosing among several values by the protocol, scored on a sequence it did not see.
 
     :param chosen: for each left-out sequence, the index of the side chosen on the others.
     :param estimate: for each left-out sequence, the chosen side's score there.
@@ -116,10 +122,12 @@ class LeaveOneOut:
 
 def leave_one_out(sides: list[Scores], *, resamples: int = 10000,
                   seed: int = 0) -> LeaveOneOut:
-    """Leave-one-sequence-out selection over ``sides`` (side 0 is the base): for each
+    """
+    Leave-one-sequence-out selection over ``sides`` (side 0 is the base): for each
     sequence, the side with the lowest mean over the other sequences is chosen and scored on
     the one left out. Its interval is a bootstrap over sequences of the estimate minus the
-    base (the seeds are already averaged into each sequence)."""
+    base (the seeds are already averaged into each sequence).
+    """
     if len(sides) < 2:
         raise ConfigError('leave-one-out needs at least two sides')
     means = [sequence_means(s) for s in sides]

@@ -1,4 +1,5 @@
-"""Synthetic static-camera sequences, for breadth beside the real ones.
+"""
+Synthetic static-camera sequences, for breadth beside the real ones.
 
     python -m activeloc_ros.bench scenes --count 48 --out out/synth48 --seed 0
 
@@ -139,8 +140,10 @@ def render_scene(folder: Path, seed: int, index: int, config) -> dict:
 
 
 def clear_stale(out: Path) -> None:
-    """Remove what killed runs (SIGKILL, SIGTERM) left in ``out``'s staging folder: the
-    folders of runs whose process is gone."""
+    """
+    Remove what killed runs (SIGKILL, SIGTERM) left in ``out``'s staging folder: the
+    folders of runs whose process is gone.
+    """
     for folder in (out / STAGING).glob('*'):
         try:
             os.kill(int(folder.name), 0)
@@ -153,8 +156,10 @@ def clear_stale(out: Path) -> None:
 
 
 def install(staged: Path, target: Path) -> None:
-    """Put a whole scene in place of ``target``: the old one (if any) moves aside first, so
-    a reader finds the old scene, the new one, or none, never a mix."""
+    """
+    Put a whole scene in place of ``target``: the old one (if any) moves aside first, so
+    a reader finds the old scene, the new one, or none, never a mix.
+    """
     old = staged.with_name(staged.name + '.old')
     if target.exists():
         os.replace(target, old)

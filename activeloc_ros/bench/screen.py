@@ -1,4 +1,5 @@
-"""The projected-screen benchmark (paper Sec. 4.2, Table 2), closed loop in simulated time.
+"""
+The projected-screen benchmark (paper Sec. 4.2, Table 2), closed loop in simulated time.
 
     python -m activeloc_ros.bench screen --data ../shared/data/sequences --out out/screen
 
@@ -61,8 +62,10 @@ def _pointer(name: str, settings: dict, seed: int):
 
 
 def run_job(job: dict) -> dict:
-    """Run one method on one sequence; returns its summary and per-frame records, or the
-    reason it failed (a bad sequence is a DataError)."""
+    """
+    Run one method on one sequence; returns its summary and per-frame records, or the
+    reason it failed (a bad sequence is a DataError).
+    """
     return in_threads(_run_job, job)
 
 
@@ -113,8 +116,10 @@ FRAME_COLUMNS = ['index', 't', 'pan_deg', 'tilt_deg', 'processed', 'scored', 'aa
 
 
 class OverlayVideo(PendingVideo):
-    """The whole screen with the camera's view (yellow), the truth (green) and the
-    method's newest location (red), the camera image inset, as H.264 that browsers play."""
+    """
+    The whole screen with the camera's view (yellow), the truth (green) and the
+    method's newest location (red), the camera image inset, as H.264 that browsers play.
+    """
 
     def __init__(self, path: Path, screen: VirtualScreen, fps: float, label: str, *,
                  max_width: int = 640):
@@ -257,8 +262,10 @@ def to_csv(result: dict) -> str:
 
 
 def plots(result: dict, out: Path) -> list[Path]:
-    """One bar chart per metric (methods x sequences) and one plot over time per sequence
-    (PNG, written atomically)."""
+    """
+    One bar chart per metric (methods x sequences) and one plot over time per sequence
+    (PNG, written atomically).
+    """
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt

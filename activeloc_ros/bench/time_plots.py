@@ -1,5 +1,7 @@
-"""Per-sequence plots over time of the screen benchmark: AAE, pan and tilt of every method,
-from the per-frame records that `screen.json` holds (`frames`, `frame_columns`)."""
+"""
+Per-sequence plots over time of the screen benchmark: AAE, pan and tilt of every method,
+from the per-frame records that `screen.json` holds (`frames`, `frame_columns`).
+"""
 import io
 import math
 from pathlib import Path
@@ -10,8 +12,10 @@ PANELS = (('aae_deg', 'AAE (deg)'), ('pan_deg', 'pan (deg)'), ('tilt_deg', 'tilt
 
 
 def series(result: dict, method: str, sequence: str, column: str) -> tuple[list, list]:
-    """(times in s, values) of one per-frame column of a run; a frame without a value
-    (not scored) is NaN, a gap in the line."""
+    """
+    (times in s, values) of one per-frame column of a run; a frame without a value
+    (not scored) is NaN, a gap in the line.
+    """
     columns = result['frame_columns']
     t, k = columns.index('t'), columns.index(column)
     frames = result['frames'].get(f'{method}/{sequence}', [])
@@ -20,8 +24,10 @@ def series(result: dict, method: str, sequence: str, column: str) -> tuple[list,
 
 
 def time_plots(result: dict, out: Path) -> list[Path]:
-    """One PNG per sequence, `time_<sequence>.png` in `out`: AAE, pan and tilt over the
-    scene's time, one line per method (colours as in the bar charts); written atomically."""
+    """
+    One PNG per sequence, `time_<sequence>.png` in `out`: AAE, pan and tilt over the
+    scene's time, one line per method (colours as in the bar charts); written atomically.
+    """
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt

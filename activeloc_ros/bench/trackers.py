@@ -1,4 +1,5 @@
-"""Tracker baselines of the active benchmark: Active TLD / MIL / MOSSE, plus KCF and CSRT.
+"""
+Tracker baselines of the active benchmark: Active TLD / MIL / MOSSE, plus KCF and CSRT.
 
 Each tracker starts on the first camera frame of a sequence from the best EdgeBoxes region
 proposal (paper: "We initialize all trackers with region proposals from an EdgeBox detector
@@ -99,7 +100,8 @@ def edge_maps(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def propose_boxes(rgb: np.ndarray, *, max_boxes: int = 50, min_area: float = 0.01,
                   max_area: float = 0.25) -> list[tuple[Box, float]]:
-    """EdgeBoxes proposals (x, y, w, h) with their scores, best first.
+    """
+    EdgeBoxes proposals (x, y, w, h) with their scores, best first.
 
     :param max_boxes: at most this many proposals are returned.
     :param min_area: drop boxes smaller than this fraction of the image area.
@@ -160,10 +162,12 @@ class TrackerPointer:
 
     def locate(self, rgb: np.ndarray, *, start: Box | None = None
                ) -> tuple[float, float] | None:
-        """(u, v) pixel of the tracked box centre in this camera frame (RGB uint8, HxWx3),
+        """
+        (u, v) pixel of the tracked box centre in this camera frame (RGB uint8, HxWx3),
         or None when the tracker reports failure (or nothing could initialise it). The first
         frame starts the tracker on ``start`` if given (the target's true box), else on the
-        best EdgeBoxes proposal."""
+        best EdgeBoxes proposal.
+        """
         _check_rgb(rgb)
         bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
         self.box = None

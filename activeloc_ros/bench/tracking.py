@@ -1,4 +1,5 @@
-"""Simulated active tracking (paper Sec. 4.1, Table 1; its ablations, Table 3).
+"""
+Simulated active tracking (paper Sec. 4.1, Table 1; its ablations, Table 3).
 
     python -m activeloc_ros.bench tracking --episodes 10 --out out/tracking
 
@@ -88,7 +89,8 @@ def make_pointer(method: str, settings: dict, seed: int):
 
 
 class Remembering:
-    """A pointer that keeps its newest answer, for the overlay video, and checks each answer
+    """
+    A pointer that keeps its newest answer, for the overlay video, and checks each answer
     against the truth of the step it was made on: whether the location lies on the target
     (inside its true box), and how far the distance that the base controller's forward rule
     reads from the answer's box (``witness.distance_to``) is from the true distance.
@@ -123,8 +125,10 @@ class Remembering:
         return self.last
 
     def scores(self) -> dict[str, float]:
-        """The share of located steps on the target, and the forward rule's median distance
-        error (nan where there was nothing to count)."""
+        """
+        The share of located steps on the target, and the forward rule's median distance
+        error (nan where there was nothing to count).
+        """
         return {'on_target': self.on_target / self.located if self.located else math.nan,
                 'distance_error_m': (float(np.median(self.distance_errors))
                                      if self.distance_errors else math.nan)}
@@ -239,8 +243,10 @@ def summarise(runs: list[dict], methods: list[str], scenes: list[str]) -> dict:
 
 
 def _mean(values: list[float]) -> float:
-    """Mean over the episodes that have the score (a method without boxes has no distance
-    error); nan when none has."""
+    """
+    Mean over the episodes that have the score (a method without boxes has no distance
+    error); nan when none has.
+    """
     finite = [v for v in values if math.isfinite(v)]
     return float(np.mean(finite)) if finite else math.nan
 

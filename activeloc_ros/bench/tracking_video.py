@@ -14,8 +14,10 @@ if TYPE_CHECKING:
 
 
 class TrackingVideo(PendingVideo):
-    """The camera view (true box green, the method's map and choice red) beside a top-down
-    map (base blue, target red, their paths), as H.264."""
+    """
+    The camera view (true box green, the method's map and choice red) beside a top-down
+    map (base blue, target red, their paths), as H.264.
+    """
 
     SIDE = 480
 

@@ -1,4 +1,5 @@
-"""MP4 videos that browsers play: H.264 (yuv420p, index at the front) through PyAV.
+"""
+MP4 videos that browsers play: H.264 (yuv420p, index at the front) through PyAV.
 
 OpenCV's pip wheels write MPEG-4 Part 2 ('mp4v'), which no browser plays, and carry no
 H.264 encoder; PyAV's wheels bundle FFmpeg with libx264.
@@ -15,7 +16,8 @@ import numpy as np
 
 
 class H264Writer:
-    """Writes BGR frames of one size (even width and height) to an H.264 MP4.
+    """
+    Writes BGR frames of one size (even width and height) to an H.264 MP4.
 
     :param path: the file to write (created or truncated).
     :param fps: frames per second.
@@ -74,9 +76,12 @@ def commit_video(path: Path) -> None:
 
 
 class PendingVideo:
-    """A video for ``path`` at ``fps``, written to its `temporary_path` from the first frame
-    on (whose size it takes), that `commit_video` puts in place once the benchmark has its
-    tables; `abandon` removes it."""
+    """
+    Write a video for ``path`` at ``fps`` to its `temporary_path`.
+
+    It opens at the first frame, whose size it takes; `commit_video` puts it in place once
+    the benchmark has its tables, and `abandon` removes it.
+    """
 
     def __init__(self, path: Path, fps: float):
         self.path, self.fps = path, fps
@@ -110,9 +115,12 @@ def discard_videos(video_dir: Path) -> None:
 
 def run_keeping_results(run: Callable[[argparse.Namespace], int],
                         args: argparse.Namespace) -> int:
-    """``run(args)`` for a benchmark that writes its results and videos into ``args.out``:
-    after a Ctrl-C the unfinished videos are gone, the previous results stay, and the exit
-    status is 130."""
+    """
+    Run a benchmark that writes its results and videos into ``args.out``.
+
+    After a Ctrl-C the unfinished videos are gone, the previous results stay, and the exit
+    status is 130.
+    """
     try:
         return run(args)
     except KeyboardInterrupt:

@@ -1,4 +1,5 @@
-"""Reactive control and the Braccio arm, free of ROS (paper Sec. 3.3, Eq. 4).
+"""
+Reactive control and the Braccio arm, free of ROS (paper Sec. 3.3, Eq. 4).
 
 The same objects run in the ROS nodes and in the closed-loop benchmark; every function that
 depends on time takes it as an argument. A loop in simulated time::

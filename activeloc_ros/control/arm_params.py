@@ -1,5 +1,7 @@
-"""The arm node's parameters, ROS-free: the node declares them, bringup checks them before
-any node starts."""
+"""
+The arm node's parameters, ROS-free: the node declares them, bringup checks them before
+any node starts.
+"""
 from activeloc_ros.checks import in_range, non_negative, one_of, Param, positive
 from activeloc_ros.control import HOME_DEG, pose_problem
 from activeloc_ros.control.braccio import STEP_DELAY_MS_RANGE

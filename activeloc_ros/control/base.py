@@ -1,4 +1,5 @@
-"""The reactive controller of a mobile base (the tracking experiment, paper Sec. 4.1):
+"""
+The reactive controller of a mobile base (the tracking experiment, paper Sec. 4.1):
 action pixel -> bearing error -> the paper's PD law -> a velocity command.
 
 The PD law (Eq. 4) gives the change of heading that centres the action; the base makes it
@@ -59,14 +60,18 @@ BASE_PD = PDConfig(kd=0.0, derivative='target', dead_band=math.radians(2.0))
 @dataclass(frozen=True)
 class Twist:
     """A base's velocity: forward (m/s) and turn rate (rad/s, > 0 = left)."""
+
     forward: float = 0.0
     turn: float = 0.0
 
 
 @dataclass(frozen=True)
 class Scan:
-    """A planar range scan from the base: ``ranges`` (m; inf: nothing within range) along
-    ``angles`` (radians from the base's heading, > 0 left), taken at ``t`` (s)."""
+    """
+    A planar range scan from the base: ``ranges`` (m; inf: nothing within range) along
+    ``angles`` (radians from the base's heading, > 0 left), taken at ``t`` (s).
+    """
+
     angles: np.ndarray
     ranges: np.ndarray
     t: float
@@ -75,9 +80,11 @@ class Scan:
 def clear_direction(scan: Scan, want: float, action: float, *, reach: float, radius: float,
                     max_detour: float, resolution: float = math.radians(2.0)
                     ) -> float | None:
-    """The direction (radians from the heading) nearest ``want`` whose corridor, ``radius``
+    """
+    The direction (radians from the heading) nearest ``want`` whose corridor, ``radius``
     m to each side and ``reach`` m long, holds no scan return, among the directions at most
-    ``max_detour`` from ``action`` (the action's direction); None when all are blocked."""
+    ``max_detour`` from ``action`` (the action's direction); None when all are blocked.
+    """
     seen = np.isfinite(scan.ranges)
     px = scan.ranges[seen] * np.cos(scan.angles[seen])
     py = scan.ranges[seen] * np.sin(scan.angles[seen])
@@ -96,7 +103,8 @@ def clear_direction(scan: Scan, want: float, action: float, *, reach: float, rad
 
 @dataclass(frozen=True)
 class BaseConfig:
-    """Everything the base controller needs besides the intrinsics.
+    """
+    Everything the base controller needs besides the intrinsics.
 
     :param step: the control period (s) over which the PD's heading change is made.
     :param camera_tilt_deg: the camera's fixed tilt above the horizon.
@@ -170,8 +178,11 @@ class BaseConfig:
 
 @dataclass(frozen=True)
 class BaseCommand:
-    """One velocity command, the time it was made, why, and the capture stamp of the action
-    location that caused it (None for stops)."""
+    """
+    One velocity command, the time it was made, why, and the capture stamp of the action
+    location that caused it (None for stops).
+    """
+
     twist: Twist
     t: float
     reason: str
@@ -210,9 +221,11 @@ class BaseController:
         self.intrinsics = intrinsics
 
     def observe(self, pose: tuple[float, float, float], t: float) -> None:
-        """The base's odometry (x, y, heading in radians) at ``t``. The heading is kept
+        """
+        The base's odometry (x, y, heading in radians) at ``t``. The heading is kept
         continuous (unwrapped): odometry wraps it at +-pi, and the PD's derivative of the
-        target's direction would see a 2 pi jump there and turn the base the wrong way."""
+        target's direction would see a 2 pi jump there and turn the base the wrong way.
+        """
         if len(pose) == 3 and all(math.isfinite(v) for v in pose) and math.isfinite(t):
             heading = float(pose[2])
             if self.yaw:
@@ -230,9 +243,11 @@ class BaseController:
         self.scan = Scan(angles, ranges, float(scan.t))
 
     def restart(self, t_now: float) -> None:
-        """The clock ran back to ``t_now``: forget the odometry's times, the last location and
+        """
+        The clock ran back to ``t_now``: forget the odometry's times, the last location and
         the PD's derivative (as `ReactiveController.restart`). Without this the watchdog
-        never stopped a moving base until the clock was back where it was."""
+        never stopped a moving base until the clock was back where it was.
+        """
         self.yaw = []
         self.scan = None
         self.pd.reset()
@@ -250,8 +265,10 @@ class BaseController:
     def on_location(self, u: float, v: float, t_capture: float, t_now: float, *,
                     peak: float | None = None, box: tuple | None = None
                     ) -> BaseCommand | None:
-        """React to an action at pixel (u, v) of a frame captured at ``t_capture``; ``box``
-        (x, y, w, h; px) is the extent of what is there, if the pointer knows it."""
+        """
+        React to an action at pixel (u, v) of a frame captured at ``t_capture``; ``box``
+        (x, y, w, h; px) is the extent of what is there, if the pointer knows it.
+        """
         cfg, intr = self.config, self.intrinsics
         problem = location_problem(u, v, t_capture, t_now, intrinsics=intr, peak=peak,
                                    min_peak=cfg.min_peak, last_capture=self._last_capture)
@@ -283,8 +300,10 @@ class BaseController:
         return self._emit(Twist(forward, turn), t_now, 'track', t_capture)
 
     def distance_to(self, box: tuple) -> float | None:
-        """The distance (m) to what ``box`` holds by the forward rule; None when it cannot
-        tell (no box, a box not on the floor, the reference still being taken)."""
+        """
+        The distance (m) to what ``box`` holds by the forward rule; None when it cannot
+        tell (no box, a box not on the floor, the reference still being taken).
+        """
         cfg = self.config
         if box is None or len(box) != 4 or not all(math.isfinite(b) for b in box) \
                 or box[2] <= 0 or box[3] <= 0:
@@ -335,10 +354,12 @@ class BaseController:
         return BaseCommand(twist, t_now, reason, stamp)
 
     def discrete(self, twist: Twist) -> Twist:
-        """The AD-VAT action nearest ``twist``: forward, backward or neither, combined with
+        """
+        The AD-VAT action nearest ``twist``: forward, backward or neither, combined with
         a left or right turn or none (never backward and turning). Backward runs at
         ``max_reverse`` at most (0: no backward action) and is taken once ``twist`` backs
-        away at half that: the continuous rule never backs away faster than ``max_reverse``."""
+        away at half that: the continuous rule never backs away faster than ``max_reverse``.
+        """
         cfg = self.config
         speed, rate = cfg.discrete_speed, math.radians(cfg.discrete_turn_deg_s)
         back = min(speed, cfg.max_reverse)

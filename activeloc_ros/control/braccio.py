@@ -1,4 +1,5 @@
-"""The TinkerKit Braccio: joint names, limits, home pose, pan/tilt mapping and a command guard.
+"""
+The TinkerKit Braccio: joint names, limits, home pose, pan/tilt mapping and a command guard.
 
 Joint angles are in whole or fractional degrees, as the Braccio library takes them; camera
 pan and tilt are in radians. Sign conventions: pan > 0 turns the camera to its left (counter-
@@ -85,10 +86,12 @@ def check_pose(joints_deg: Sequence[float], what: str = 'pose') -> tuple[float, 
 def fixed_moves(target_deg: Sequence[float], current_deg: Sequence[float], *,
                 home_deg: Sequence[float], aiming: Sequence[str],
                 tolerance: float = 0.5) -> dict[str, float]:
-    """The joints not in ``aiming`` that ``target_deg`` would move away from both their home
+    """
+    The joints not in ``aiming`` that ``target_deg`` would move away from both their home
     angle and ``current_deg``: name -> target, degrees. A command with any is refused
     (moving such a joint towards home, or leaving it, is allowed): nobody but the
-    configuration moves the gripper that holds the camera."""
+    configuration moves the gripper that holds the camera.
+    """
     return {name: float(q) for name, q, now, h in
             zip(JOINT_NAMES, target_deg, current_deg, home_deg)
             if name not in aiming and abs(q - h) > tolerance and abs(q - now) > tolerance}
@@ -112,7 +115,8 @@ def clamp_text(target: Sequence[float], safe: Sequence[float], count: int) -> st
 
 @dataclass(frozen=True)
 class ArmMapping:
-    """Camera pan/tilt <-> joint angles around a home pose.
+    """
+    Camera pan/tilt <-> joint angles around a home pose.
 
     ``joint = home + gain * angle_deg``: pan drives ``pan_joint`` only; tilt is shared by
     ``tilt_joints`` with ``tilt_gains`` (degrees of joint per degree of camera tilt; for a
@@ -158,9 +162,11 @@ class ArmMapping:
         return (self.pan_joint, *self.tilt_joints)
 
     def aim_only(self, joints_deg: Sequence[float]) -> tuple[float, ...]:
-        """``joints_deg`` with every joint that does not aim the camera at its home angle: a
+        """
+        ``joints_deg`` with every joint that does not aim the camera at its home angle: a
         pose reported or commanded by anyone else never moves those (the gripper holds the
-        camera)."""
+        camera).
+        """
         aiming = self.aiming_joints
         return tuple(float(q) if name in aiming else h
                      for name, q, h in zip(JOINT_NAMES, joints_deg, self.home_deg))
@@ -184,7 +190,8 @@ class ArmMapping:
 
 
 class JointGuard:
-    """Keeps every command inside the joint limits and within the servos' speed.
+    """
+    Keeps every command inside the joint limits and within the servos' speed.
 
     Each command may move a joint at most ``1000 / step_delay_ms * (t - t_prev)`` degrees
     from the previous command; time that runs backwards or is not finite allows no motion.

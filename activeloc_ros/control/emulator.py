@@ -1,4 +1,5 @@
-"""An emulated ``braccio_serial.ino`` on a pseudo-terminal, for tests and for trying the
+"""
+An emulated ``braccio_serial.ino`` on a pseudo-terminal, for tests and for trying the
 serial back end without hardware.
 
 The host side opens ``emulator.path``: a symlink to the pty's slave, like the udev links

@@ -1,4 +1,5 @@
-"""From a pixel and the camera intrinsics to the pan/tilt angles that centre it.
+"""
+From a pixel and the camera intrinsics to the pan/tilt angles that centre it.
 
 Pixels follow the ROS/OpenCV convention (u right, v down, integer pixel centres); the
 intrinsics are a CameraInfo's ``K`` (full-resolution, before binning and ROI, REP 104).
@@ -16,7 +17,8 @@ _RADIAL_MODELS = ('plumb_bob', 'rational_polynomial')
 
 @dataclass(frozen=True)
 class Intrinsics:
-    """Pinhole intrinsics plus what is needed to use them on a published (binned/ROI) image.
+    """
+    Pinhole intrinsics plus what is needed to use them on a published (binned/ROI) image.
 
     :param width: width of the calibrated (full-resolution) image, pixels.
     :param dist: distortion coefficients for ``plumb_bob`` / ``rational_polynomial``
@@ -101,10 +103,12 @@ def _distort(x: float, y: float, k: Sequence[float]) -> tuple[float, float, floa
 
 
 def _undistort(xd: float, yd: float, dist: Sequence[float]) -> tuple[float, float]:
-    """Invert the Brown-Conrady model by fixed-point iteration (as OpenCV does). Where it
+    """
+    Invert the Brown-Conrady model by fixed-point iteration (as OpenCV does). Where it
     does not converge (far outside the calibrated region, where strong distortion folds
     the image) the point is left as measured: the iteration's last step there can lie
-    anywhere, even at infinity."""
+    anywhere, even at infinity.
+    """
     k = (list(dist) + [0.0] * 8)[:8]
     x, y = xd, yd
     for _ in range(20):
@@ -121,7 +125,8 @@ def _undistort(xd: float, yd: float, dist: Sequence[float]) -> tuple[float, floa
 
 def angular_error(u: float, v: float, intrinsics: Intrinsics, *,
                   camera_tilt: float = 0.0) -> tuple[float, float]:
-    """Pan and tilt changes (radians) that put pixel (u, v) on the optical axis.
+    """
+    Pan and tilt changes (radians) that put pixel (u, v) on the optical axis.
 
     The camera sits on a pan (vertical axis) then tilt head, currently raised by
     ``camera_tilt`` above the horizon. Pan > 0 = turn left, tilt > 0 = raise. With the

@@ -1,6 +1,8 @@
-"""The controller node's parameters and the controller configs made from their values,
+"""
+The controller node's parameters and the controller configs made from their values,
 ROS-free: the node declares them, bringup checks them before any node starts, and the
-benchmarks read them."""
+benchmarks read them.
+"""
 import math
 
 from activeloc_ros.checks import in_range, non_negative, one_of, Param, positive
@@ -91,8 +93,10 @@ BASE_PD_SETTINGS = {'kd': BASE_PD.kd, 'derivative': BASE_PD.derivative,
 
 
 def pd_from(settings: dict, variant: str = '') -> PDConfig:
-    """The PD law from those of `PD_PARAMS` that ``settings`` holds (the core's defaults for
-    the rest): a Table 3 ``variant``'s gains, whatever kp and kd say, else kp and kd."""
+    """
+    The PD law from those of `PD_PARAMS` that ``settings`` holds (the core's defaults for
+    the rest): a Table 3 ``variant``'s gains, whatever kp and kd say, else kp and kd.
+    """
     options = {name: settings[name] for name in PD_PARAMS if name in settings}
     if 'dead_band_deg' in options:
         options['dead_band'] = math.radians(options.pop('dead_band_deg'))
@@ -135,10 +139,12 @@ def unread_reason(actuator: str, count: int = 1) -> str:
 
 
 def base_config_from(values: dict) -> BaseConfig:
-    """The base controller's config from validated parameter values (raises ConfigError):
+    """
+    The base controller's config from validated parameter values (raises ConfigError):
     kp (or a PD variant's gains) and the watchdog the arm's would have, its own kd,
     derivative, dead band and information rule (those parameters are the arm's), and the
-    base's own settings."""
+    base's own settings.
+    """
     settings = {**values, **BASE_PD_SETTINGS}
     return BaseConfig(pd=pd_from(settings, values['pd_variant']),
                       watchdog_timeout=values['watchdog_timeout'],
@@ -146,8 +152,10 @@ def base_config_from(values: dict) -> BaseConfig:
 
 
 def check_change(values: dict, changed: set) -> 'str | None':
-    """Refuse a run-time change that would be accepted but have no effect, or a set of
-    values the core refuses."""
+    """
+    Refuse a run-time change that would be accepted but have no effect, or a set of
+    values the core refuses.
+    """
     moot = sorted(changed & set(unread(values['actuator'])))
     if moot:
         return (f'{", ".join(moot)} would have no effect: '

@@ -1,4 +1,5 @@
-"""The paper's reactive control law (Eq. 4): c_{t+1} = lambda_p e(t) + lambda_d de/dt.
+"""
+The paper's reactive control law (Eq. 4): c_{t+1} = lambda_p e(t) + lambda_d de/dt.
 
 ``e`` is the angular error (pan, tilt) between the ray to the action and the optical axis;
 the output is the change of camera orientation to apply from where the camera was when the
@@ -26,7 +27,8 @@ MIN_DT = 1e-4
 
 @dataclass(frozen=True)
 class PDConfig:
-    """Gains and shaping of the PD law.
+    """
+    Gains and shaping of the PD law.
 
     :param kp: lambda_p (1/1).
     :param kd: lambda_d (seconds), the paper's 0.1. 0 was better on the real static
@@ -90,7 +92,8 @@ class PDController:
 
     def update(self, error: tuple[float, float], t: float, *,
                camera: tuple[float, float] = (0.0, 0.0)) -> tuple[float, float]:
-        """Orientation change (pan, tilt) for an error measured in a frame captured at ``t``.
+        """
+        Orientation change (pan, tilt) for an error measured in a frame captured at ``t``.
 
         :param camera: the camera's (pan, tilt) at ``t``; used by ``derivative='target'``.
         """

@@ -1,4 +1,5 @@
-"""The ASCII serial protocol between the host and ``braccio_serial.ino`` (115200 baud, 8N1).
+"""
+The ASCII serial protocol between the host and ``braccio_serial.ino`` (115200 baud, 8N1).
 
 Host -> Arduino:  ``<w,d0,d1,d2,d3,d4,d5>`` set targets (whole degrees, JOINT_NAMES order),
                   ``<r>`` read the state, ``<l>`` are you alive?
@@ -37,8 +38,10 @@ ERROR = b'<e>'
 
 @dataclass(frozen=True)
 class Frame:
-    """A decoded frame: ``kind`` is 'w', 'r', 'l', 's', 'ok', 'e' or 'bad' (with a reason);
-    ``joints`` is set for 'w' and 's'."""
+    """
+    A decoded frame: ``kind`` is 'w', 'r', 'l', 's', 'ok', 'e' or 'bad' (with a reason);
+    ``joints`` is set for 'w' and 's'.
+    """
 
     kind: str
     joints: tuple[int, ...] | None = None

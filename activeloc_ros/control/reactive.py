@@ -1,4 +1,5 @@
-"""The reactive controller: action pixel -> angular error -> PD -> guarded joint command.
+"""
+The reactive controller: action pixel -> angular error -> PD -> guarded joint command.
 
 All times are explicit arguments in seconds (ROS time in the node, simulated time in the
 benchmark); nothing here reads a clock.
@@ -19,7 +20,8 @@ from activeloc_ros.errors import ConfigError
 
 @dataclass(frozen=True)
 class ControllerConfig:
-    """Everything the reactive controller needs besides the intrinsics.
+    """
+    Everything the reactive controller needs besides the intrinsics.
 
     :param watchdog_timeout: seconds without an accepted action location before holding.
     :param step_delay_ms: the servos' ms per degree (10-30), which sets the speed limit.
@@ -88,8 +90,10 @@ class ControllerConfig:
 
 @dataclass(frozen=True)
 class Command:
-    """One joint command: six angles in degrees, the time it was made, why, and the capture
-    stamp of the action location that caused it (None for holds)."""
+    """
+    One joint command: six angles in degrees, the time it was made, why, and the capture
+    stamp of the action location that caused it (None for holds).
+    """
 
     joints_deg: tuple[float, ...]
     t: float
@@ -130,8 +134,10 @@ class PoseHistory:
         return (self._t[-1], self._q[-1]) if self._t else None
 
     def at(self, t: float, slack: float) -> tuple[float, ...] | None:
-        """Joints at ``t`` (linear interpolation); the newest sample when ``t`` lies more than
-        ``slack`` outside the history; None when empty."""
+        """
+        Joints at ``t`` (linear interpolation); the newest sample when ``t`` lies more than
+        ``slack`` outside the history; None when empty.
+        """
         if not self._t:
             return None
         if not math.isfinite(t) or t < self._t[0] - slack or t > self._t[-1] + slack:
@@ -175,9 +181,12 @@ FUTURE_SLACK = 1.0   # s a capture stamp may run ahead of the controller's clock
 
 
 def controller_state(intrinsics: Intrinsics | None, holding: bool, accepted: bool) -> str:
-    """What a controller (the arm's or the base's) is doing: waiting (no camera intrinsics
-    yet), holding (the watchdog holds it still), tracking (it has accepted a location) or
-    idle."""
+    """
+    Name what a controller (the arm's or the base's) is doing.
+
+    Waiting (no camera intrinsics yet), holding (the watchdog holds it still), tracking
+    (it has accepted a location) or idle.
+    """
     if intrinsics is None:
         return 'waiting'
     if holding:
@@ -188,11 +197,13 @@ def controller_state(intrinsics: Intrinsics | None, holding: bool, accepted: boo
 def location_problem(u: float, v: float, t_capture: float, t_now: float, *,
                      intrinsics: Intrinsics | None, peak: float | None, min_peak: float,
                      last_capture: float) -> str | None:
-    """Why a controller (the arm's or a base's) must not act on an action location, or None:
+    """
+    Why a controller (the arm's or a base's) must not act on an action location, or None:
     no intrinsics, a bad time, a stamp more than `FUTURE_SLACK` ahead of now (accepted, it
     would turn every later location away as out of order), a pixel outside the image, a
     map without information (its peak below ``min_peak``; None for a pointer without a
-    map), a stamp not after the last accepted one."""
+    map), a stamp not after the last accepted one.
+    """
     if intrinsics is None:
         return 'no camera info'
     if not (math.isfinite(t_capture) and math.isfinite(t_now)):
@@ -209,7 +220,8 @@ def location_problem(u: float, v: float, t_capture: float, t_now: float, *,
 
 
 class ReactiveController:
-    """Turns time-stamped action locations into joint commands the arm can follow.
+    """
+    Turns time-stamped action locations into joint commands the arm can follow.
 
     States: ``'waiting'`` (no intrinsics yet), ``'idle'`` (no location yet), ``'tracking'``
     and ``'holding'`` (the watchdog fired: the arm was told to stay where it is).
@@ -250,8 +262,10 @@ class ReactiveController:
         self.intrinsics = intrinsics
 
     def observe(self, joints_deg: Sequence[float], t: float) -> None:
-        """The arm's measured pose at ``t``; before the first command it also seeds the guard,
-        so the first commands ramp from where the arm really is."""
+        """
+        The arm's measured pose at ``t``; before the first command it also seeds the guard,
+        so the first commands ramp from where the arm really is.
+        """
         pose = tuple(joints_deg)
         if len(pose) != len(self.guard.last_deg) or not all(math.isfinite(q) for q in pose):
             return
@@ -262,11 +276,13 @@ class ReactiveController:
             self.guard.reset(pose, t)
 
     def restart(self, t_now: float) -> None:
-        """The clock ran back to ``t_now`` (a bag replayed in a loop with its ``/clock``):
+        """
+        The clock ran back to ``t_now`` (a bag replayed in a loop with its ``/clock``):
         forget every time it holds (the arm's recent poses, the last location, the PD's
         derivative, a move in progress) and go on from the last command, as after a start.
         Without this every location is out of order, and the guard allows no motion, until
-        the clock is back where it was."""
+        the clock is back where it was.
+        """
         self.guard.reset(self.guard.last_deg, t_now)
         self.history = PoseHistory(self.history.horizon)
         self.pd.reset()
@@ -275,8 +291,10 @@ class ReactiveController:
         self._goal = self._seen = None
 
     def ignore(self, reason: str, t_now: float) -> Command | None:
-        """Count an ignored location; the watchdog's answer to it, else the rest of a move
-        the servos' speed cut short."""
+        """
+        Count an ignored location; the watchdog's answer to it, else the rest of a move
+        the servos' speed cut short.
+        """
         self.ignored[reason] = self.ignored.get(reason, 0) + 1
         command = self.tick(t_now)
         if (command is None and self._goal is not None and not self._holding
@@ -305,7 +323,8 @@ class ReactiveController:
 
     def on_location(self, u: float, v: float, t_capture: float, t_now: float, *,
                     peak: float | None = None, box: tuple | None = None) -> Command | None:
-        """React to an action at pixel (u, v) of a frame captured at ``t_capture``. (``box``,
+        """
+        React to an action at pixel (u, v) of a frame captured at ``t_capture``. (``box``,
         the extent of what is there, is the base controller's: an arm only aims.)
 
         Returns the command to send. A location can be ignored (no intrinsics, NaN/absurd
@@ -350,8 +369,10 @@ class ReactiveController:
         return self._emit(target, t_now, 'track', t_capture)
 
     def _confirmed(self, pan: float, tilt: float, error: tuple[float, float]) -> bool:
-        """`confirm_deg`: does the previous still frame's location agree with this one,
-        pointing at (pan, tilt) in the world? Within the dead band nothing moves: no need."""
+        """
+        `confirm_deg`: does the previous still frame's location agree with this one,
+        pointing at (pan, tilt) in the world? Within the dead band nothing moves: no need.
+        """
         seen, self._seen = self._seen, (pan, tilt)
         limit = math.radians(self.config.confirm_deg)
         return (limit == 0 or self.pd.within_dead_band(error)

@@ -1,4 +1,5 @@
-"""The serial link to ``braccio_serial.ino`` over pyserial, never blocking.
+"""
+The serial link to ``braccio_serial.ino`` over pyserial, never blocking.
 
 ``BraccioLink.poll(now)`` does a bounded amount of non-blocking I/O and returns at once, so
 a ROS timer can drive it without ever blocking the executor. It opens the port, waits for
@@ -20,7 +21,8 @@ BAUDS = (9600, 19200, 38400, 57600, 115200)
 
 
 def open_serial(path: str, baud: int = protocol.BAUD) -> serial.Serial:
-    """Open ``path`` raw 8N1 at ``baud`` for this process alone; reads and writes return at
+    """
+    Open ``path`` raw 8N1 at ``baud`` for this process alone; reads and writes return at
     once (timeout 0).
 
     Raises ArmLinkError when the port is missing, busy or not a terminal.
@@ -56,7 +58,8 @@ class LinkStats:
 
 
 class BraccioLink:
-    """State machine ``closed`` -> ``handshake`` -> ``connected``, driven by ``poll(now)``.
+    """
+    State machine ``closed`` -> ``handshake`` -> ``connected``, driven by ``poll(now)``.
 
     :param poll_period: seconds between requests (the sketch polls every 20 ms).
     :param reply_timeout: a request unanswered this long is superseded by the next one.
@@ -161,10 +164,12 @@ class BraccioLink:
         self.state = 'closed'
 
     def _plausible(self, joints: tuple[int, ...], now: float) -> bool:
-        """Could the servos have gone from the last state to ``joints`` by ``now``? A frame
+        """
+        Could the servos have gone from the last state to ``joints`` by ``now``? A frame
         that passes the checksum-free protocol by chance usually could not. (One whole
         degree of rounding, and a poll's lateness, are slack.) The allowance grows with
-        the time since the last state, so a refused arm is believed again soon."""
+        the time since the last state, so a refused arm is believed again soon.
+        """
         if self.joints is None:
             return True
         dt = max(now - self.joints_time, 0.0) + self.poll_period

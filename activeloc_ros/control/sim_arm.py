@@ -1,4 +1,5 @@
-"""The arm in time as the sketch drives it: whole degrees, one degree per step delay.
+"""
+The arm in time as the sketch drives it: whole degrees, one degree per step delay.
 
 Like ``Braccio.ServoMovement`` (and ``braccio_serial.ino``), every ``step_delay_ms`` each
 joint that is not at its target moves one whole degree towards it; the steps run on a free
@@ -40,7 +41,8 @@ class SimArm:
         self.target = quantize(target_deg)
 
     def advance(self, t: float) -> tuple[int, ...]:
-        """Move the joints up to time ``t`` (earlier or non-finite times change nothing).
+        """
+        Move the joints up to time ``t`` (earlier or non-finite times change nothing).
 
         Steps are counted from the start time, not accumulated, so asking twice for the
         same time never moves the arm twice (float sums would drift across a step).
@@ -58,8 +60,10 @@ class SimArm:
         return self.joints
 
     def restart(self, t: float) -> None:
-        """The clock ran back to ``t``: the servos go on stepping from there (else they stood
-        still until the clock was back where it was)."""
+        """
+        The clock ran back to ``t``: the servos go on stepping from there (else they stood
+        still until the clock was back where it was).
+        """
         if not math.isfinite(t):
             raise ConfigError(f'restart time must be finite, got {t}')
         self.t = self._t0 = float(t)

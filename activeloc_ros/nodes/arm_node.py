@@ -1,4 +1,5 @@
-"""The Braccio arm: follows ``joint_commands`` and publishes ``joint_states`` (radians).
+"""
+The Braccio arm: follows ``joint_commands`` and publishes ``joint_states`` (radians).
 
 Back ends (parameter ``backend``): ``sim`` moves a simulated Braccio at the servos' speed in
 whole degrees (``control.SimArm``), an arm without hardware; ``serial`` drives
@@ -41,8 +42,10 @@ LINK_TIMES = ('silence_timeout', 'reconnect_period', 'handshake_timeout')
 
 def parse_command(msg: JointState, current: tuple[float, ...]
                   ) -> tuple[tuple[float, ...] | None, str]:
-    """Six target angles in degrees from a JointState (radians, any subset of the joints by
-    name, or all six in order without names), or None and why it is malformed."""
+    """
+    Six target angles in degrees from a JointState (radians, any subset of the joints by
+    name, or all six in order without names), or None and why it is malformed.
+    """
     names = list(msg.name) if msg.name else list(JOINT_NAMES)
     positions = list(msg.position)
     if len(names) != len(positions):
@@ -121,8 +124,10 @@ class ArmNode(Node):
                                f'{values["stop_mode"]}')
 
     def on_parameters(self, values: dict, changed: set) -> None:
-        """A run-time change (validated): stop settings are read when stopping; the rate
-        and the link's timeouts change at once."""
+        """
+        A run-time change (validated): stop settings are read when stopping; the rate
+        and the link's timeouts change at once.
+        """
         with self._lock:
             self.values = values
             self.home = tuple(float(q) for q in values['home_deg'])
@@ -137,8 +142,12 @@ class ArmNode(Node):
         return self.get_clock().now().nanoseconds * 1e-9
 
     def _restart(self, now: float) -> None:
-        """After the clock ran back (`Rewinds`): the simulated servos and the stop's ramp go
-        on from ``now`` (the serial link keeps its own, monotonic, time)."""
+        """
+        Go on from ``now`` after the clock ran back (`Rewinds`).
+
+        The simulated servos and the stop's ramp restart; the serial link keeps its own,
+        monotonic, time.
+        """
         if self.sim is not None:
             self.sim.restart(now)
         self._stop_t = min(self._stop_t, now)
@@ -310,7 +319,8 @@ class ArmNode(Node):
                 and tuple(int(q) for q in here) == goal)
 
     def stop_on_purpose(self, executor=None) -> bool:
-        """Stop on purpose while the context is alive: hold here or ramp home, and wait
+        """
+        Stop on purpose while the context is alive: hold here or ramp home, and wait
         (at most ``stop_timeout``) until the arm got there.
 
         :param executor: spin this one; by default a private one, unless the node belongs

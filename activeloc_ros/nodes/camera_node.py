@@ -1,4 +1,5 @@
-"""Camera node: publishes `camera/image_raw` and `camera/camera_info` from a chosen source.
+"""
+Camera node: publishes `camera/image_raw` and `camera/camera_info` from a chosen source.
 
     ros2 run activeloc_ros camera_node --ros-args -p source:=bag:bags/vtest -p loop:=true
 

@@ -1,4 +1,5 @@
-"""A simulated clock that runs back: a bag replayed in a loop with its ``/clock`` (``ros2 bag
+"""
+A simulated clock that runs back: a bag replayed in a loop with its ``/clock`` (``ros2 bag
 play --loop --clock``) sends every node on ``use_sim_time`` back to the bag's start.
 
 The controller and the arm hold times (the arm's recent poses, the last location, the
@@ -18,7 +19,8 @@ REWIND_S = 0.2   # a smaller step back costs at most that long a wait: not worth
 
 
 class Rewinds:
-    """Notes ``node``'s clock jumping back by more than `REWIND_S`.
+    """
+    Notes ``node``'s clock jumping back by more than `REWIND_S`.
 
     The jump arrives from the ``/clock`` subscription with the clock's own lock held, so it
     is only noted here; `locked`, which holds the node's ``lock``, acts on it where the
@@ -43,8 +45,12 @@ class Rewinds:
 
     @contextlib.contextmanager
     def locked(self):
-        """The node's lock, for a callback that touches its core: first, if the clock ran
-        back since the last call, the core starts over at the new time."""
+        """
+        Hold the node's lock, for a callback that touches its core.
+
+        First, if the clock ran back since the last call, the core starts over at the new
+        time.
+        """
         with self._lock:
             jump, self._jump_s = self._jump_s, None
             if jump is not None:

@@ -1,4 +1,5 @@
-"""Reactive camera control (paper Sec. 3.3): action location -> PD -> Braccio joint commands,
+"""
+Reactive camera control (paper Sec. 3.3): action location -> PD -> Braccio joint commands,
 or, with ``actuator: base``, velocity commands for a mobile base (the tracking world).
 
 Subscribes ``action_location`` (PointStamped: pixel x, y and the surprise peak in z; header
@@ -232,9 +233,11 @@ class ControllerNode(Node):
         self._log_ignored()
 
     def _pose_known(self, msg: PointStamped) -> bool:
-        """Simulated time: is what the answer to ``msg`` needs here? The actuator's state at
+        """
+        Simulated time: is what the answer to ``msg`` needs here? The actuator's state at
         its stamp, and for a base the location's region (published before it, but DDS keeps
-        no order between topics)."""
+        no order between topics).
+        """
         if self.base:
             newest = self.core.newest_state_time
             if stamp_ns(msg.header.stamp) not in self._regions:
@@ -285,8 +288,10 @@ class ControllerNode(Node):
             self.publisher.publish(joint_state(command.joints_deg, stamp))
 
     def stop_on_purpose(self) -> None:
-        """Stop the arm where it is, on purpose, make sure the command went out, and send
-        no more (safe to call while another thread spins the node)."""
+        """
+        Stop the arm where it is, on purpose, make sure the command went out, and send
+        no more (safe to call while another thread spins the node).
+        """
         with self._locked():
             self.stopped = True
             command = self.core.hold(self._now())

@@ -1,4 +1,5 @@
-"""What the three nodes that publish camera frames (camera, sim, tracking) do alike: publish
+"""
+What the three nodes that publish camera frames (camera, sim, tracking) do alike: publish
 a picture with its camera info, hold the first one back until its readers are up, and, for
 the two worlds, wire lockstep's clock and answers.
 
@@ -24,8 +25,10 @@ RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 
 
 def publish_frame(node, rgb, stamp, k):
-    """Publish ``rgb`` on camera/image_raw and its pinhole ``k`` on camera/camera_info, both
-    stamped ``stamp``, and count it; returns the header they share."""
+    """
+    Publish ``rgb`` on camera/image_raw and its pinhole ``k`` on camera/camera_info, both
+    stamped ``stamp``, and count it; returns the header they share.
+    """
     height, width = rgb.shape[:2]
     image = Image(**rgb_to_image_fields(rgb, node.params['encoding']))
     image.header.stamp = stamp
@@ -39,9 +42,12 @@ def publish_frame(node, rgb, stamp, k):
 
 
 def end_playback(node, what: str) -> None:
-    """The node's ``playback`` has no more frames: its ``finish`` with ``end of <what>``,
-    or, when the stream failed, the frames stop with the error, which ``failure`` keeps
-    (``run`` then exits 1)."""
+    """
+    End the frames: the node's ``playback`` has no more.
+
+    A stream that ran out calls the node's ``finish`` with ``end of <what>``; one that
+    failed stops with the error, which ``failure`` keeps (``run`` then exits 1).
+    """
     node.failure = node.playback.ended(node.published)
     if node.failure is None:
         node.finish(f'end of {what}')
@@ -57,9 +63,13 @@ def images_heard(node) -> bool:
 
 
 def lockstep_wiring(node, state_type, state_topic: str) -> Lockstep:
-    """A world's side of lockstep: publishes ``/clock``; hears perception's locations, the
-    controller's ``action_location/ignored`` and the echo of the world's own state on
-    ``state_topic``, each fed to the returned ``Lockstep`` under ``node._lock``."""
+    """
+    Wire a world's side of lockstep, and return its ``Lockstep``.
+
+    The node publishes ``/clock`` and hears perception's locations, the controller's
+    ``action_location/ignored`` and the echo of the world's own state on ``state_topic``,
+    each fed to the ``Lockstep`` under ``node._lock``.
+    """
     step = Lockstep(timeout=node.params['lockstep_timeout'],
                     command_timeout=node.params['lockstep_command_timeout'])
 
@@ -81,8 +91,11 @@ def lockstep_wiring(node, state_type, state_topic: str) -> Lockstep:
 
 
 def readers_matched(node, publisher) -> bool:
-    """Whether every reader the graph shows on ``publisher``'s topic, but those whose QoS
-    can never match it, is matched to it: a message sent now reaches them all."""
+    """
+    Say whether a message ``publisher`` sends now reaches every reader of its topic.
+
+    Every reader the graph shows counts, but those whose QoS can never match it.
+    """
     readers = node.get_subscriptions_info_by_topic(publisher.topic_name)
     can_match = sum(
         qos_check_compatible(publisher.qos_profile, reader.qos_profile)[0]
@@ -91,12 +104,16 @@ def readers_matched(node, publisher) -> bool:
 
 
 def lockstep_graph_up(node, state_pub, *others) -> bool:
-    """Whether the pictures have their readers; perception and the controller, which
-    lockstep waits for at every frame, publish what the node listens to; and the world's
-    state (``state_pub``), its camera info and ``others`` reach the controller: the state
-    has a reader besides the node's own echo, and every reader the graph shows is matched.
+    """
+    Say whether a world in lockstep may send its first frame.
+
+    The pictures have their readers; perception and the controller, which lockstep waits
+    for at every frame, publish what the node listens to; and the world's state
+    (``state_pub``), its camera info and ``others`` reach the controller: the state has a
+    reader besides the node's own echo, and every reader the graph shows is matched.
     Otherwise the controller could miss the first frame's state or camera info and answer
-    that frame late, or not at all."""
+    that frame late, or not at all.
+    """
     return (images_heard(node) and node.command_sub.get_publisher_count() > 0
             and node.ignored_sub.get_publisher_count() > 0
             and node.location_sub.get_publisher_count() > 0
@@ -105,9 +122,11 @@ def lockstep_graph_up(node, state_pub, *others) -> bool:
 
 
 def may_start(node, ready: bool, heard: str, starts: str) -> bool:
-    """Whether the frames may start: once ``ready`` (logged as ``heard``), or when
+    """
+    Whether the frames may start: once ``ready`` (logged as ``heard``), or when
     ``wait_for_subscriber`` seconds have gone by without (a warning); ``starts`` names
-    what begins. Ends the node's wait when it says yes."""
+    what begins. Ends the node's wait when it says yes.
+    """
     if ready:
         node.get_logger().info(f'{heard}: {starts}')
     elif time.monotonic() - node.started_at > node.params['wait_for_subscriber']:

@@ -1,4 +1,5 @@
-"""Health of a frame pipeline, ROS-free: counts and timings summarised once per period.
+"""
+Health of a frame pipeline, ROS-free: counts and timings summarised once per period.
 
 The perception node feeds it and turns each `Report` into a diagnostic_msgs status on
 `/diagnostics` (maps/s, latency, dropped and skipped frames), as camera drivers do.
@@ -19,7 +20,8 @@ class Report:
 
 
 class PipelineStats:
-    """What happened to the frames since the start and since the last report.
+    """
+    What happened to the frames since the start and since the last report.
 
     *Announced* frames are those the camera says it published (one camera_info each);
     announced frames never received were dropped on the way (a depth-1 queue keeps only
@@ -52,8 +54,10 @@ class PipelineStats:
 
     @property
     def camera_period(self) -> float | None:
-        """The camera's frame period, s: the median gap between the stamps of the last
-        announced frames; None before two."""
+        """
+        The camera's frame period, s: the median gap between the stamps of the last
+        announced frames; None before two.
+        """
         return float(np.median(self._gaps)) if self._gaps else None
 
     def frame_received(self) -> None:

@@ -35,9 +35,11 @@ class InProcessGraph:
             self.crashed = exc
 
     def failure(self) -> str | None:
-        """Why the graph cannot go on, as a node process's exit code says it: a node that
+        """
+        Why the graph cannot go on, as a node process's exit code says it: a node that
         gave up (a camera stream that failed, an arm link down for give_up_timeout), or a
-        callback that raised."""
+        callback that raised.
+        """
         if self.crashed is not None:
             return f'a node callback raised {type(self.crashed).__name__}: {self.crashed}'
         for name, node in self.nodes.items():

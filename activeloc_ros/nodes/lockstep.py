@@ -1,4 +1,5 @@
-"""Lockstep in the ROS graph: the simulation's side of ``closed_loop``'s lockstep mode,
+"""
+Lockstep in the ROS graph: the simulation's side of ``closed_loop``'s lockstep mode,
 ROS-free.
 
 ``closed_loop.run_episode(mode='lockstep')`` shows scene frame i at ``t_i = i / fps``,
@@ -45,15 +46,18 @@ def time_ns(index: int, fps: float) -> int:
 
 
 def moot_in_lockstep(values: dict, changed: set) -> str | None:
-    """A world node's run-time check: ``rate`` paces real time only, so in lockstep a change
-    would be reported as set and never used."""
+    """
+    A world node's run-time check: ``rate`` paces real time only, so in lockstep a change
+    would be reported as set and never used.
+    """
     if values['lockstep'] and 'rate' in changed:
         return 'rate would have no effect: in lockstep the graph sets the pace, not the clock'
     return None
 
 
 class Lockstep:
-    """The sim's lockstep state machine: fed the graph's messages, told what to do next.
+    """
+    The sim's lockstep state machine: fed the graph's messages, told what to do next.
 
     ``begin`` starts a frame (its tick and arm state are out); ``poll`` answers 'render'
     (publish the frame; then call ``rendered``), 'next' (the frame is done: begin the next)
@@ -139,9 +143,11 @@ class Lockstep:
 
 
 def recorded_poses(path: Path) -> list[tuple[float, float, float]]:
-    """(t, pan, tilt) of every frame of a recorded run (``bringup --record``) with a virtual
+    """
+    (t, pan, tilt) of every frame of a recorded run (``bringup --record``) with a virtual
     camera: its ``camera/pose`` messages, t in seconds of their stamp (the image's, whole
-    nanoseconds: frame i is ``round(t * fps)``), pan and tilt in radians, in time order."""
+    nanoseconds: frame i is ``round(t * fps)``), pan and tilt in radians, in time order.
+    """
     from activeloc_ros.bag.read import read_messages
     rows = []
     for _, _, _, msg in read_messages(Path(path), [POSE_TOPIC]):

@@ -1,4 +1,5 @@
-"""One master for each actuator: notice a second publisher on a command topic, and say so.
+"""
+One master for each actuator: notice a second publisher on a command topic, and say so.
 
 Two controllers that both publish ``joint_commands`` (or ``cmd_vel``) make the arm follow
 whichever spoke last; nothing in DDS forbids it. The controller, the arm and the sim each
@@ -22,7 +23,8 @@ def masters_problem(topic: str, publishers: Sequence[str]) -> str | None:
 
 
 class PublisherWatch:
-    """Checks the publishers of a command topic on ``node`` once a second.
+    """
+    Checks the publishers of a command topic on ``node`` once a second.
 
     :param say: where the warning goes (default: the node's logger, as a warning).
     """

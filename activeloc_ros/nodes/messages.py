@@ -1,4 +1,5 @@
-"""Conversions between the ROS messages the nodes exchange and the core's plain values, in
+"""
+Conversions between the ROS messages the nodes exchange and the core's plain values, in
 the spirit of cv_bridge (images: `images`).
 
 Stamps: a `builtin_interfaces/Time` (or anything with `sec` and `nanosec`) to and from
@@ -41,8 +42,10 @@ def time_from_s(t: float):
 
 
 def joint_state(joints_deg: Sequence[float], stamp=None):
-    """A sensor_msgs/JointState of the six Braccio joints at ``joints_deg`` (radians on the
-    wire), stamped with ``stamp``."""
+    """
+    A sensor_msgs/JointState of the six Braccio joints at ``joints_deg`` (radians on the
+    wire), stamped with ``stamp``.
+    """
     from sensor_msgs.msg import JointState
     msg = JointState(name=list(JOINT_NAMES), position=[math.radians(q) for q in joints_deg])
     if stamp is not None:
@@ -51,8 +54,10 @@ def joint_state(joints_deg: Sequence[float], stamp=None):
 
 
 def camera_info(k, width: int, height: int, header):
-    """A sensor_msgs/CameraInfo of a distortion-free pinhole camera with matrix ``k``
-    (3x3)."""
+    """
+    A sensor_msgs/CameraInfo of a distortion-free pinhole camera with matrix ``k``
+    (3x3).
+    """
     from sensor_msgs.msg import CameraInfo
     info = CameraInfo(header=header, width=width, height=height, distortion_model='plumb_bob')
     info.k = [float(v) for v in k.ravel()]
@@ -64,8 +69,10 @@ def camera_info(k, width: int, height: int, header):
 
 
 def region_message(box: Sequence[float], header):
-    """A geometry_msgs/PolygonStamped of the box's top-left and bottom-right corners (float32
-    on the wire: `metrics.blob_box` gives corners that survive it exactly)."""
+    """
+    A geometry_msgs/PolygonStamped of the box's top-left and bottom-right corners (float32
+    on the wire: `metrics.blob_box` gives corners that survive it exactly).
+    """
     from geometry_msgs.msg import Point32, PolygonStamped
     x, y, w, h = (float(v) for v in box)
     msg = PolygonStamped(header=header)
@@ -82,8 +89,10 @@ def region_box(msg) -> tuple[float, float, float, float] | None:
 
 
 def arm_joints_deg(msg) -> list[float] | None:
-    """The six Braccio joints in degrees, in `JOINT_NAMES` order, from a JointState that
-    names them all (in any order, among others); None if it does not."""
+    """
+    The six Braccio joints in degrees, in `JOINT_NAMES` order, from a JointState that
+    names them all (in any order, among others); None if it does not.
+    """
     index = {name: i for i, name in enumerate(msg.name)}
     if len(msg.position) != len(msg.name) or any(n not in index for n in JOINT_NAMES):
         return None
@@ -91,8 +100,10 @@ def arm_joints_deg(msg) -> list[float] | None:
 
 
 def scan_message(scan: Scan, *, max_range: float, header):
-    """A sensor_msgs/LaserScan of a `Scan` whose rays are evenly spaced, counterclockwise
-    from ``scan.angles[0]`` (ranges beyond ``max_range``: +inf)."""
+    """
+    A sensor_msgs/LaserScan of a `Scan` whose rays are evenly spaced, counterclockwise
+    from ``scan.angles[0]`` (ranges beyond ``max_range``: +inf).
+    """
     from sensor_msgs.msg import LaserScan
     angles = scan.angles
     step = float(angles[1] - angles[0]) if len(angles) > 1 else 0.0
@@ -102,9 +113,11 @@ def scan_message(scan: Scan, *, max_range: float, header):
 
 
 def scan_from(msg, t: float) -> Scan:
-    """The `Scan` of a sensor_msgs/LaserScan taken at ``t`` (s): returns outside
+    """
+    The `Scan` of a sensor_msgs/LaserScan taken at ``t`` (s): returns outside
     [range_min, range_max] are no return (inf); ConfigError for a scan whose angles do not
-    fit its ranges."""
+    fit its ranges.
+    """
     ranges = np.asarray(msg.ranges, float)
     n = len(ranges)
     if n == 0 or not (math.isfinite(msg.angle_min) and math.isfinite(msg.angle_increment)):

@@ -10,7 +10,8 @@ from activeloc_ros.nodes.messages import stamp_s
 
 
 class Monitor:
-    """Watches the graph's topics from its own node: rates, latency, location, arm pose.
+    """
+    Watches the graph's topics from its own node: rates, latency, location, arm pose.
 
     In lockstep the graph's stamps are simulated time, in which a command takes no time:
     the monitor shows how far the simulated clock got instead of a latency.
@@ -52,9 +53,11 @@ class Monitor:
             say=lambda text: print(f'bringup: warning: {text}', file=sys.stderr, flush=True))
 
     def hears_downstream(self, recorder=None) -> bool:
-        """Are the monitor's (and the recorder's) subscriptions to what perception and the
+        """
+        Are the monitor's (and the recorder's) subscriptions to what perception and the
         controller publish matched with their publishers? Discovery is pairwise, so a node
-        the source already talks to may not yet reach bringup's own nodes."""
+        the source already talks to may not yet reach bringup's own nodes.
+        """
         subs = list(self.downstream)
         if recorder is not None:
             subs += [recorder.subs.get(s.topic_name) for s in self.downstream]

@@ -1,4 +1,5 @@
-"""Typed, described and validated ROS parameters.
+"""
+Typed, described and validated ROS parameters.
 
 Validation is a pure function per parameter (value -> error message or None), registered
 before the parameters are declared so values from `params/*.yaml` are validated too. A
@@ -28,8 +29,10 @@ _INT64 = (-2**63, 2**63 - 1)
 
 
 def descriptor(spec: Param) -> ParameterDescriptor:
-    """The descriptor of `spec`: description, read-only flag and, for a numeric scalar with
-    a ``Range`` check, its range."""
+    """
+    The descriptor of `spec`: description, read-only flag and, for a numeric scalar with
+    a ``Range`` check, its range.
+    """
     text = spec.description + (' (read-only: set at start-up)' if spec.read_only else '')
     result = ParameterDescriptor(description=text, read_only=spec.read_only)
     check = spec.check
@@ -54,7 +57,8 @@ def declare(node, params: Sequence[Param], *, cli_args: Sequence[str] | None = N
             use_global_arguments: bool = True,
             check_all: Callable[[dict, set], 'str | None'] | None = None,
             on_change: Callable[[dict, set], None] | None = None) -> dict[str, Any]:
-    """Declare `params` on `node` with descriptors and validation; return their values.
+    """
+    Declare `params` on `node` with descriptors and validation; return their values.
 
     Raises ConfigError naming the parameter (and the file) when a value (default, YAML or
     command line) is invalid, or a params file holds a key or section nothing reads.
@@ -110,8 +114,10 @@ def declare(node, params: Sequence[Param], *, cli_args: Sequence[str] | None = N
 
 
 def node_help(executable: str, doc: str, params: Sequence[Param]) -> str:
-    """What ``EXECUTABLE --help`` prints: usage, the module's description and every
-    parameter with its default."""
+    """
+    What ``EXECUTABLE --help`` prints: usage, the module's description and every
+    parameter with its default.
+    """
     lines = [f'usage: ros2 run activeloc_ros {executable} [--ros-args [-p NAME:=VALUE]... '
              '[--params-file FILE]...]', '', doc.strip(), '',
              'parameters (default; * read-only: set at start-up):']

@@ -1,4 +1,5 @@
-"""docs/parameters.md: every node's parameters, made from their declarations.
+"""
+docs/parameters.md: every node's parameters, made from their declarations.
 
     python -m activeloc_ros.nodes.params_doc            # write docs/parameters.md
     python -m activeloc_ros.nodes.params_doc --check    # exit 1 if it is stale

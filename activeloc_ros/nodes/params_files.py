@@ -1,4 +1,5 @@
-"""The params files and ``-p`` rules a node is given, read as rcl reads them.
+"""
+The params files and ``-p`` rules a node is given, read as rcl reads them.
 
 rcl passes over some mistakes in silence: a value of the wrong type in a later file
 (``kp: 'fast'``) leaves the earlier value in place, keys no node declares and sections
@@ -46,9 +47,11 @@ def _declared_type(value) -> 'Parameter.Type | None':
 
 
 def cli_param_rule(flag: str, item: str | None) -> tuple[str, str] | None:
-    """(name, value text) of the command-line pair ``-p name:=value`` (or ``--param``), else
+    """
+    (name, value text) of the command-line pair ``-p name:=value`` (or ``--param``), else
     None. rcl applies a rule without a node prefix (``node:name:=``) to every node of the
-    process."""
+    process.
+    """
     if flag in ('-p', '--param') and item is not None and ':=' in item:
         return item.partition(':=')[::2]
     return None
@@ -61,15 +64,19 @@ def cli_param_rules(args: Iterable[str] | None) -> list[tuple[str, str]]:
 
 
 def undeclared(name: str, declared: Iterable[str]) -> bool:
-    """Whether a ``-p`` rule for ``name`` sets a parameter that a node declaring ``declared``
-    (and rclpy's own) does not have; a node-prefixed rule is rcl's to route."""
+    """
+    Whether a ``-p`` rule for ``name`` sets a parameter that a node declaring ``declared``
+    (and rclpy's own) does not have; a node-prefixed rule is rcl's to route.
+    """
     return ':' not in name and name not in {*declared, *BUILTIN_PARAMS}
 
 
 def unknown_cli_params(args: Iterable[str] | None, declared: Iterable[str], *,
                        unknown: str = 'no such parameter') -> list[str]:
-    """Each ``-p`` rule naming a parameter that is not in ``declared`` (nor rclpy's), with
-    the nearest declared name: the node would ignore it, silently."""
+    """
+    Each ``-p`` rule naming a parameter that is not in ``declared`` (nor rclpy's), with
+    the nearest declared name: the node would ignore it, silently.
+    """
     known = {*declared, *BUILTIN_PARAMS}
     problems = []
     for name, _ in cli_param_rules(args):
@@ -114,7 +121,8 @@ def _example(kind: Parameter.Type, value) -> str:
 
 def params_file_problems(content, node: str, declared: Mapping[str, Parameter.Type],
                          known_elsewhere: Iterable[str] = ()) -> list[str]:
-    """Why a params file's `content` (parsed YAML) is wrong for `node`; empty when fine.
+    """
+    Why a params file's `content` (parsed YAML) is wrong for `node`; empty when fine.
 
     A section must name one of NODE_NAMES (any namespace) or be a wildcard. In the
     sections that reach `node` (its own name, ``*`` or ``**``), a value must have the type
@@ -165,8 +173,10 @@ def params_file_problems(content, node: str, declared: Mapping[str, Parameter.Ty
 
 @functools.lru_cache(maxsize=None)
 def _declared_keys() -> frozenset[str]:
-    """Every parameter some node of the package declares: the keys a shared /** section
-    may hold for other nodes."""
+    """
+    Every parameter some node of the package declares: the keys a shared /** section
+    may hold for other nodes.
+    """
     from activeloc_ros.graph_plan import node_params
     from activeloc_ros.paths import NODE_NAMES
     return frozenset(p.name for node in NODE_NAMES for p in node_params(node))
@@ -178,8 +188,10 @@ BUILTIN_PARAMS = {'use_sim_time': Parameter.Type.BOOL,
 
 
 def files_problems(node_name: str, params: Sequence[Param], files: Iterable[str]) -> list[str]:
-    """Every problem of the params `files` for the node `node_name` declaring `params`
-    (see ``params_file_problems``), each naming its file."""
+    """
+    Every problem of the params `files` for the node `node_name` declaring `params`
+    (see ``params_file_problems``), each naming its file.
+    """
     declared = {**BUILTIN_PARAMS, **{p.name: _declared_type(p.default) for p in params}}
     problems = []
     for path in files:

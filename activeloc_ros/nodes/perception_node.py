@@ -1,4 +1,5 @@
-"""Perception node: the online surprise model on every newest camera frame.
+"""
+Perception node: the online surprise model on every newest camera frame.
 
 Subscribes `camera/image_raw` (sensor_msgs/Image; with `image_transport: compressed`,
 `camera/image_raw/compressed`, sensor_msgs/CompressedImage) with depth 1, so the newest
@@ -135,8 +136,10 @@ class PerceptionNode(Node):
                                f'{wanted.name.lower()}: subscribed again with it')
 
     def on_parameters(self, values: dict, changed: set) -> None:
-        """A run-time change (read-only parameters are refused before): the next frame uses
-        it."""
+        """
+        A run-time change (read-only parameters are refused before): the next frame uses
+        it.
+        """
         changed = changed & values.keys()     # (use_sim_time is rclpy's)
         self.params.update({name: values[name] for name in changed & self.params.keys()})
         self.get_logger().info('set at run time: ' + ', '.join(
@@ -167,10 +170,12 @@ class PerceptionNode(Node):
         self.process(msg.header, rgb)
 
     def _pipeline_busy(self) -> bool:
-        """With the pipeline, whether a frame already waits for the learner. A frame taken
+        """
+        With the pipeline, whether a frame already waits for the learner. A frame taken
         now would wait a whole learning step after it was encoded, so it is left, as depth 1
         leaves the frames that arrive while one is in hand, and a newer one is taken once the
-        learner has the waiting frame."""
+        learner has the waiting frame.
+        """
         return self.pipeline is not None and self.pipeline.busy()
 
     def process(self, header, rgb) -> None:
@@ -190,11 +195,13 @@ class PerceptionNode(Node):
             self.pipeline.submit(rgb, tag=(header, rgb, started), t=captured)
 
     def _late(self, captured: float) -> Callable[[], bool] | None:
-        """For the model's `skip_late_updates`: whether the node's clock has passed the
+        """
+        For the model's `skip_late_updates`: whether the node's clock has passed the
         capture of the camera's next frame (this frame's stamp plus the camera's period).
         None, never late, while the period is unknown or the stamp is no capture time (a
         bag replayed with its recorded stamps). In lockstep the clock stands still while
-        the model runs: never late."""
+        the model runs: never late.
+        """
         period = self.stats.camera_period
         now = self.get_clock().now().nanoseconds * 1e-9
         if period is None or not 0.0 <= now - captured < MAX_CAPTURE_AGE_S:

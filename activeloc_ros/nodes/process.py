@@ -1,5 +1,7 @@
-"""The Jazzy run idiom for every node process: init, spin, a stop on purpose, shut down,
-with Ctrl-C and SIGTERM at any moment of it handled; and the executor the nodes spin in."""
+"""
+The Jazzy run idiom for every node process: init, spin, a stop on purpose, shut down,
+with Ctrl-C and SIGTERM at any moment of it handled; and the executor the nodes spin in.
+"""
 import math
 import os
 import signal
@@ -23,8 +25,10 @@ from activeloc_ros.nodes.params_files import load_params_file, params_files
 
 
 class ProcessContext(Context):
-    """The context `run` initialises with the process's arguments, which it keeps: a node
-    made in it that uses the global arguments checks their params files too (`declare`)."""
+    """
+    The context `run` initialises with the process's arguments, which it keeps: a node
+    made in it that uses the global arguments checks their params files too (`declare`).
+    """
 
     def __init__(self, args):
         super().__init__()
@@ -32,10 +36,13 @@ class ProcessContext(Context):
 
 
 class _StopRequest:
-    """Set by a signal handler. A plain attribute, because a handler can interrupt anything,
+    """
+    Set by a signal handler. A plain attribute, because a handler can interrupt anything,
     itself included: threading.Event.set takes a lock, and a signal arriving inside it
     deadlocks the process (seen: a node that the repeated SIGTERMs of its parent's death
-    left hanging for good)."""
+    left hanging for good).
+    """
+
     requested = False
     starting = False          # the node is being made, which a stop ends at once
     requested_at = math.inf   # time.monotonic() of the first request while starting
@@ -46,12 +53,14 @@ STOPPED_STARTING = 'stopped (Ctrl-C or SIGTERM) before the node was ready'
 
 
 def _end_a_start_that_goes_on(stop: _StopRequest) -> None:
-    """While the node is being made: once a stop was asked for and the start still goes on
+    """
+    While the node is being made: once a stop was asked for and the start still goes on
     `START_STOP_GRACE_S` later, end the process. The stop raises KeyboardInterrupt in the
     start, but third-party code can swallow it (OpenVINO's model conversion, tracing the
     encoder for an int8 build, goes on after one), and the build would then take its
     minute. Nothing is lost: the node never became ready, and a build's folder is removed
-    by the next build (`int8`)."""
+    by the next build (`int8`).
+    """
     while stop.starting:
         if time.monotonic() - stop.requested_at > START_STOP_GRACE_S:
             print(f'{STOPPED_STARTING}: its start went on {START_STOP_GRACE_S:g} s after the '
@@ -67,9 +76,11 @@ def wants_help(args: Sequence[str]) -> bool:
 
 
 def frame_due(timer, due: float) -> bool:
-    """Is a paced frame (a replayed camera's, a world's real-time step) due at ``due``
+    """
+    Is a paced frame (a replayed camera's, a world's real-time step) due at ``due``
     (monotonic seconds) now? If not, the node's timer sleeps until then (at most 50 ms)
-    instead of polling; if so, it comes back in 1 ms for the frame after."""
+    instead of polling; if so, it comes back in 1 ms for the frame after.
+    """
     wait = due - time.monotonic()
     timer.timer_period_ns = int(min(max(wait, 0.001), 0.05) * 1e9)
     timer.reset()
@@ -77,16 +88,20 @@ def frame_due(timer, due: float) -> bool:
 
 
 def frames_stopped(node) -> None:
-    """on_stop of a node that publishes frames (camera, sim, tracking world): how many it
-    published, unless it had ended by itself and said so."""
+    """
+    on_stop of a node that publishes frames (camera, sim, tracking world): how many it
+    published, unless it had ended by itself and said so.
+    """
     if not node.finished:
         node.get_logger().info(f'stopped: {node.published} frames published')
 
 
 def lean_executor(context=None):
-    """A single-threaded executor with the least work per callback: rclpy's EventsExecutor
+    """
+    A single-threaded executor with the least work per callback: rclpy's EventsExecutor
     where this rclpy has it (Jazzy's later releases), else its SingleThreadedExecutor, which
-    builds a wait set in Python for every callback."""
+    builds a wait set in Python for every callback.
+    """
     try:
         from rclpy.experimental import EventsExecutor
     except ImportError:
@@ -95,8 +110,10 @@ def lean_executor(context=None):
 
 
 def ros_args_problem(args: list[str]) -> str | None:
-    """Why rcl refuses a command line's ROS arguments (an unknown flag, ``-p`` without a
-    rule), or None; rclpy raises it from ``init`` as a bare RuntimeError."""
+    """
+    Why rcl refuses a command line's ROS arguments (an unknown flag, ``-p`` without a
+    rule), or None; rclpy raises it from ``init`` as a bare RuntimeError.
+    """
     from rclpy.signals import SignalHandlerOptions
     context = rclpy.Context()
     try:   # (no signal handlers: the caller's, for Ctrl-C, stay as they are)
@@ -110,11 +127,13 @@ def ros_args_problem(args: list[str]) -> str | None:
 
 
 def ignore_late_stops() -> None:
-    """Ignore Ctrl-C and SIGTERM from now on: the node is gone and the process only ends.
+    """
+    Ignore Ctrl-C and SIGTERM from now on: the node is gone and the process only ends.
     A stop that comes then (bringup's, when a node that ended by itself is stopped in the
     same moment) has nothing left to stop, but Python, finalising, puts its handlers back to
     the default first, so it would kill the process (exit -2 or -15) in the middle of its
-    exit."""
+    exit.
+    """
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)
 
@@ -122,7 +141,8 @@ def ignore_late_stops() -> None:
 def run(node_factory: Callable[..., Any], args=None, *,
         on_stop: Callable[[Any], None] | None = None,
         help_text: Callable[[], str] | None = None) -> int:
-    """Init, spin and shut down one node the Jazzy way; a project error exits 1 with a message.
+    """
+    Init, spin and shut down one node the Jazzy way; a project error exits 1 with a message.
 
     A node that ends by itself sets ``finished``; one that ends because it cannot go on
     (the arm's serial link is gone) also sets ``failure`` to the reason, and the process

@@ -1,4 +1,5 @@
-"""Which reliability a subscription needs to hear the publishers of a topic.
+"""
+Which reliability a subscription needs to hear the publishers of a topic.
 
 A RELIABLE subscription never hears a BEST_EFFORT publisher (a camera driver with
 SensorDataQoS), while a BEST_EFFORT subscription hears both but, over Fast DDS, loses most

@@ -1,4 +1,5 @@
-"""Recorder node: writes every topic of the running graph to a rosbag2 MCAP bag.
+"""
+Recorder node: writes every topic of the running graph to a rosbag2 MCAP bag.
 
 It discovers topics as they appear and subscribes to each with raw (CDR) callbacks, so
 messages go to the bag as they travelled, with no conversion. Used by `bringup --record`.
@@ -31,9 +32,11 @@ def in_namespace(topic: str, namespace: str) -> bool:
 
 
 class RecorderNode(Node):
-    """:param expected: topics (name -> type) subscribed at once, reliably, before their
+    """
+    :param expected: topics (name -> type) subscribed at once, reliably, before their
         publishers exist, so that not even their first message is missed; other topics are
-        found as they appear."""
+        found as they appear.
+    """
 
     def __init__(self, path: Path, *, expected: dict[str, str] | None = None,
                  wrap_stream=None, **kwargs):
@@ -104,8 +107,10 @@ class RecorderNode(Node):
                 self._failed(exc)
 
     def _failed(self, exc: RecordingError) -> None:
-        """The recording ended on an error: count what the bag holds, not what was sent to
-        it (a full disk loses the chunk being written)."""
+        """
+        The recording ended on an error: count what the bag holds, not what was sent to
+        it (a full disk loses the chunk being written).
+        """
         self.error = exc
         self.get_logger().error(str(exc))
         held = self.writer.held

@@ -1,4 +1,5 @@
-"""Simulation node: the projected-screen world (`world.ScreenWorld`) in the graph.
+"""
+Simulation node: the projected-screen world (`world.ScreenWorld`) in the graph.
 
     ros2 run activeloc_ros sim_node --ros-args -p scene:=otb_crossing
 
@@ -130,8 +131,10 @@ class SimNode(Node):
                 self.lockstep.on_command(stamp_ns(msg.header.stamp))
 
     def _acceptable(self, joints: tuple[float, ...]) -> bool:
-        """Refuse (and say so) a command that moves a joint which does not aim the camera;
-        say so when one is clamped into the joint limits, which the arm then does."""
+        """
+        Refuse (and say so) a command that moves a joint which does not aim the camera;
+        say so when one is clamped into the joint limits, which the arm then does.
+        """
         mapping = self.world.screen.mapping
         moved = mapping.fixed_moves(joints, self.world.arm.target)
         if moved:

@@ -1,4 +1,5 @@
-"""How bringup starts a node's process: ``python -m activeloc_ros.nodes.start NODE ARGS``.
+"""
+How bringup starts a node's process: ``python -m activeloc_ros.nodes.start NODE ARGS``.
 
 A node's module loads torch, OpenCV or OpenVINO before its own stop handling
 (`process.run`) is in place, which takes seconds; a Ctrl-C or SIGTERM then came out as a

@@ -1,4 +1,5 @@
-"""Tracking world node: the simulated active-tracking world (`tracking.world.TrackingWorld`,
+"""
+Tracking world node: the simulated active-tracking world (`tracking.world.TrackingWorld`,
 paper Sec. 4.1) in the graph.
 
     ros2 run activeloc_ros tracking_node --ros-args -p scene:=room -p seed:=3
@@ -120,10 +121,12 @@ class TrackingNode(Node):
         return (time.monotonic() - self.started_at) * self.params['rate']
 
     def _command_time(self) -> float:
-        """Real time: when a command arriving now reaches the base, on the world's clock.
+        """
+        Real time: when a command arriving now reaches the base, on the world's clock.
         Never later than the middle of the world's next step: a world that fell behind the
         wall clock (slow rendering) would otherwise keep every command for later, later and
-        later as it fell further behind."""
+        later as it fell further behind.
+        """
         return min(self._wall(), self.world.t + 0.5 * self.world.config.step)
 
     def tick(self) -> None:
@@ -168,8 +171,10 @@ class TrackingNode(Node):
         step.begin(t_ns, now)
 
     def _publish_base(self, stamp) -> None:
-        """The base's range scan and its odometry now: the scan first, as a location waiting
-        for the odometry of its step is answered as soon as that comes."""
+        """
+        The base's range scan and its odometry now: the scan first, as a location waiting
+        for the odometry of its step is answered as soon as that comes.
+        """
         scan = self.world.scan()
         if scan is not None:
             self.scan_pub.publish(scan_message(scan, max_range=self.world.config.scan_range,

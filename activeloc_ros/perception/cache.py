@@ -1,4 +1,5 @@
-"""The weight cache: where each encoder's converted ImageNet weights are, and whether a cached
+"""
+The weight cache: where each encoder's converted ImageNet weights are, and whether a cached
 file is the one `python -m activeloc_ros.perception.weights fetch` wrote (`weights.py`
 fetches and converts them; this module only reads).
 
@@ -90,7 +91,8 @@ def file_name(name: str) -> str:
 
 
 def weights_path(name: str, *, cache: str | Path | None = None) -> Path:
-    """The cached state dict of an encoder.
+    """
+    The cached state dict of an encoder.
 
     :raises WeightsError: the file is missing (the message gives the command that fetches
         it), or the encoder (vgg16) has no registry source.
@@ -117,7 +119,8 @@ _checked: set[tuple[str, int, int]] = set()
 
 
 def check_cached(name: str, path: Path, *, fix: str) -> None:
-    """Raise WeightsError unless `path` holds exactly the state dict `fetch` wrote.
+    """
+    Raise WeightsError unless `path` holds exactly the state dict `fetch` wrote.
 
     A file of the right name can still be wrong (damaged, zeroed, replaced): its weights
     would load and silently give features of nothing. Checked once per process and file.

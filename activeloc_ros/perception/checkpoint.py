@@ -1,5 +1,7 @@
-"""Checkpoints of the surprise model: its config, weights, optimiser and running state, so
-a loaded model continues learning where the saved one stopped."""
+"""
+Checkpoints of the surprise model: its config, weights, optimiser and running state, so
+a loaded model continues learning where the saved one stopped.
+"""
 import torch
 
 from activeloc_ros.errors import WeightsError
@@ -28,8 +30,10 @@ def save(model: SurpriseModel, path: str) -> None:
 
 
 def load(path: str) -> SurpriseModel:
-    """Rebuild a saved model. Raises WeightsError for a file that is missing or not such a
-    checkpoint."""
+    """
+    Rebuild a saved model. Raises WeightsError for a file that is missing or not such a
+    checkpoint.
+    """
     try:
         return _load(path)
     except Exception as exc:   # torch's unpickler meets a file of junk with any error

@@ -1,4 +1,5 @@
-"""Every choice of the perception model: `PerceptionConfig`, built from ROS parameters or YAML.
+"""
+Every choice of the perception model: `PerceptionConfig`, built from ROS parameters or YAML.
 
 The perception node declares one ROS parameter per field, with the field's help string
 (`perception.params.model_params`), so the field's default is the parameter's. What each
@@ -32,6 +33,7 @@ def _param(default: Any, text: str, check: Check | None = None) -> Any:
 @dataclass
 class PerceptionConfig:
     """Every choice of the perception model; `from_dict` builds it from ROS parameters/YAML."""
+
     # encoder
     encoder: str = _param(
         'vgg19',
@@ -281,8 +283,10 @@ class PerceptionConfig:
 
     @classmethod
     def fields_in(cls, values: dict[str, Any]) -> dict[str, Any]:
-        """The entries of `values` that are fields of this config (a perception node's
-        parameters hold its own too)."""
+        """
+        The entries of `values` that are fields of this config (a perception node's
+        parameters hold its own too).
+        """
         names = _field_names(cls)
         return {k: v for k, v in values.items() if k in names}
 

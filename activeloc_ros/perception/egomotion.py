@@ -1,4 +1,5 @@
-"""The camera's own motion between two frames, estimated from the images.
+"""
+The camera's own motion between two frames, estimated from the images.
 
 When the camera turns (the arm moving it, or a panning source video) every feature of the
 view changes, so the frame difference and the prediction error light up the whole image and
@@ -19,7 +20,8 @@ MODELS = ('similarity', 'homography')
 
 
 class EgoMotion:
-    """Similarity transforms between consecutive images of one size (the encoder input).
+    """
+    Similarity transforms between consecutive images of one size (the encoder input).
 
     :param features: ORB keypoints per image.
     :param min_shift_px: a warp that moves no image corner more than this is no motion.
@@ -41,9 +43,11 @@ class EgoMotion:
         return self.orb.detectAndCompute(gray, None)
 
     def estimate(self, prev, cur, image_wh: tuple[int, int]) -> np.ndarray | None:
-        """The 3x3 matrix taking pixels of the previous image to the current one, both
+        """
+        The 3x3 matrix taking pixels of the previous image to the current one, both
         `image_wh` (width, height), from their `keypoints`; None when the camera did not
-        move or the motion is unknown."""
+        move or the motion is unknown.
+        """
         (kp0, des0), (kp1, des1) = prev, cur
         if des0 is None or des1 is None or len(kp0) < MIN_INLIERS or len(kp1) < MIN_INLIERS:
             return None
@@ -69,9 +73,11 @@ class EgoMotion:
 
 
 def warp_image(prev: np.ndarray, h: np.ndarray, cur: np.ndarray) -> np.ndarray:
-    """The previous image as the current view would show it. What it did not see is taken
+    """
+    The previous image as the current view would show it. What it did not see is taken
     from the current image: no change there, rather than a black edge whose features
-    would differ from the new frame's over the encoder's whole receptive field."""
+    would differ from the new frame's over the encoder's whole receptive field.
+    """
     size = (prev.shape[1], prev.shape[0])
     warped = cv2.warpPerspective(prev, h, size, flags=cv2.INTER_LINEAR,
                                  borderMode=cv2.BORDER_CONSTANT, borderValue=0)
@@ -83,9 +89,11 @@ def warp_image(prev: np.ndarray, h: np.ndarray, cur: np.ndarray) -> np.ndarray:
 
 def warp_cells(values: torch.Tensor, h: np.ndarray, image_wh: tuple[int, int],
                grid: tuple[int, int]) -> torch.Tensor:
-    """Per-cell values (K, rows*cols, ...) of the previous view moved to the current one by
+    """
+    Per-cell values (K, rows*cols, ...) of the previous view moved to the current one by
     the warp `h` of images `image_wh` (width, height) that a (rows, cols) grid covers
-    (bilinear; cells the previous view did not see get 0)."""
+    (bilinear; cells the previous view did not see get 0).
+    """
     k, n = values.shape[:2]
     rest = values.shape[2:]
     rows, cols = grid

@@ -1,6 +1,8 @@
-"""An ImageNet encoder with its weights: the state dict's layout checked against the
+"""
+An ImageNet encoder with its weights: the state dict's layout checked against the
 architecture (`encoders`), loaded without a random initialisation first, or fetched from
-the weights cache (`build_encoder`)."""
+the weights cache (`build_encoder`).
+"""
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -29,7 +31,8 @@ def _listing(keys: set[str], limit: int = 8) -> str:
 
 def check_layout(name: str, state: Mapping[str, torch.Tensor], *,
                  source: str) -> bool:
-    """Raise WeightsError unless `state` fits the encoder; return whether it has the head.
+    """
+    Raise WeightsError unless `state` fits the encoder; return whether it has the head.
 
     The head keys are all-or-nothing; BatchNorm's `num_batches_tracked` may be absent.
     """
@@ -78,7 +81,8 @@ def load_encoder(name: str, state: Mapping[str, torch.Tensor], *, source: str,
 
 def build_encoder(name: str, *, weights: str | Path | None = None, pretrained: bool = True,
                   classifier: bool = True) -> Encoder:
-    """An ImageNet encoder in eval mode (BatchNorm frozen also under `train()`).
+    """
+    An ImageNet encoder in eval mode (BatchNorm frozen also under `train()`).
 
     :param name: one of `ENCODERS`.
     :param weights: a state dict file; default: the converted file in the weights cache. For

@@ -1,4 +1,5 @@
-"""ImageNet encoders: a frame in, a stride-16 feature map out (B, C, 14, 14 for 224 px).
+"""
+ImageNet encoders: a frame in, a stride-16 feature map out (B, C, 14, 14 for 224 px).
 
 The paper encodes each frame with VGG-16 up to pool4 (Sec. 3.2). No registry this project
 can reach ships VGG-16 weights, so four encoders share one interface (see `weights.py` for
@@ -86,7 +87,8 @@ HAS_HEAD = {'vgg16': True, 'vgg19': False, 'efficientnet_lite0': True, 'resnet50
 
 
 class Encoder(nn.Module):
-    """Base of the encoders: preprocessing, the trunk to the stride-16 tap, an optional head.
+    """
+    Base of the encoders: preprocessing, the trunk to the stride-16 tap, an optional head.
 
     :param name: one of `ENCODERS`.
     :param channels: C of the tapped feature map.
@@ -355,8 +357,10 @@ class EfficientNetLite0Encoder(Encoder):
 # ---------------------------------------------------------------------------------------
 
 class Bottleneck(nn.Module):
-    """ResNet v1 bottleneck: the stride sits on the first 1x1 conv (torchvision's v1.5 puts
-    it on the 3x3). Keys as torchvision's."""
+    """
+    ResNet v1 bottleneck: the stride sits on the first 1x1 conv (torchvision's v1.5 puts
+    it on the 3x3). Keys as torchvision's.
+    """
 
     CONV_BN = (('conv1', 'bn1'), ('conv2', 'bn2'), ('conv3', 'bn3'),
                ('downsample.0', 'downsample.1'))
@@ -449,8 +453,10 @@ def _replace(module: nn.Module, path: str, new: nn.Module) -> None:
 
 
 def set_conv_padding(encoder: nn.Module, mode: str) -> nn.Module:
-    """Make every convolution wider than 1x1 pad its input with `mode`: 'zeros' (as the
-    ImageNet weights were trained) or 'reflect'. ResNet-50's max pool keeps its padding."""
+    """
+    Make every convolution wider than 1x1 pad its input with `mode`: 'zeros' (as the
+    ImageNet weights were trained) or 'reflect'. ResNet-50's max pool keeps its padding.
+    """
     for m in encoder.modules():
         if isinstance(m, nn.Conv2d) and max(m.kernel_size) > 1:
             m.padding_mode = mode
@@ -458,7 +464,8 @@ def set_conv_padding(encoder: nn.Module, mode: str) -> nn.Module:
 
 
 def fold_batchnorm(enc: Encoder) -> Encoder:
-    """A frozen copy with every BatchNorm folded into the conv before it, for inference.
+    """
+    A frozen copy with every BatchNorm folded into the conv before it, for inference.
 
     Cheaper per frame (measured here: EfficientNet-Lite0 about 30 % less, ResNet-50 about
     7 %; VGG has no BatchNorm), but an SGD step on the folded weights is not the same step
@@ -484,8 +491,10 @@ def fold_batchnorm(enc: Encoder) -> Encoder:
 # ---------------------------------------------------------------------------------------
 
 def make_encoder(name: str, *, head: bool) -> Encoder:
-    """A randomly initialised encoder (on the current default device); `head` only where
-    the weights' source has an ImageNet classifier (`HAS_HEAD`)."""
+    """
+    A randomly initialised encoder (on the current default device); `head` only where
+    the weights' source has an ImageNet classifier (`HAS_HEAD`).
+    """
     head = head and HAS_HEAD.get(name, False)
     if name in VGG_CFGS:
         return VGGEncoder(name, head=head, caffe=name == 'vgg19')

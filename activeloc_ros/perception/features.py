@@ -1,4 +1,5 @@
-"""The encoder's side of the model: frames in, the rows x cols grid of C-d features out.
+"""
+The encoder's side of the model: frames in, the rows x cols grid of C-d features out.
 
 `Features` owns the CNN encoder (`perception.encoders`), the arithmetic it runs in
 (float32, bfloat16 or OpenVINO int8, `perception.int8`), the mirrored border round its input
@@ -37,9 +38,11 @@ def cpu_flags() -> list[str]:
 
 
 def fast_bfloat16() -> bool:
-    """Does this CPU compute in bfloat16 natively: AMX tiles (Intel Sapphire Rapids on) or
+    """
+    Does this CPU compute in bfloat16 natively: AMX tiles (Intel Sapphire Rapids on) or
     AVX512_BF16 dot products (AMD Zen 4 on, Intel Cooper Lake)? There bfloat16 convolutions
-    run faster than float32; elsewhere they are emulated and slower."""
+    run faster than float32; elsewhere they are emulated and slower.
+    """
     return bool({'AMX', 'AVX512_BF16'} & set(cpu_flags()))
 
 
@@ -51,7 +54,8 @@ def resolve_precision(precision: str) -> str:
 
 
 class Features:
-    """The encoder of a configuration, ready to run.
+    """
+    The encoder of a configuration, ready to run.
 
     :param cfg: the configuration.
     :param encoder: an already built encoder to use instead of `build_encoder(cfg...)`.
@@ -128,10 +132,12 @@ class Features:
                 self.precision = 'float32'
 
     def aspect_note(self, frame_wh: tuple[int, int]) -> str | None:
-        """Why frames of `frame_wh` (width, height) reach the encoder out of the shape
+        """
+        Why frames of `frame_wh` (width, height) reach the encoder out of the shape
         `input_aspect` was set for, or None: their aspect differs from the input's by more
         than `ASPECT_TOLERANCE`. The paper's square input (1) squashes every frame on
-        purpose: no note."""
+        purpose: no note.
+        """
         if self.cfg.input_aspect == 1.0:
             return None
         width, height = frame_wh
@@ -144,8 +150,10 @@ class Features:
                 f'out of shape: set the perception parameter input_aspect to {aspect:.4f}')
 
     def preprocess(self, frame: np.ndarray) -> torch.Tensor | None:
-        """(H, W, 3) RGB 0..255 -> (1, 3, h, w) normalised encoder input (`input_wh`); None
-        if not finite."""
+        """
+        (H, W, 3) RGB 0..255 -> (1, 3, h, w) normalised encoder input (`input_wh`); None
+        if not finite.
+        """
         img = self.resize(frame)
         return None if img is None else self.tensor(img)
 
@@ -175,8 +183,10 @@ class Features:
         return x
 
     def of(self, x: torch.Tensor, *, learning: bool = False) -> torch.Tensor:
-        """(B, 3, h, w) -> (B, N, C) float32 features, computed at `precision` by the frozen
-        encoder, or with `learning` by the encoder whose weights learn (under autograd)."""
+        """
+        (B, 3, h, w) -> (B, N, C) float32 features, computed at `precision` by the frozen
+        encoder, or with `learning` by the encoder whose weights learn (under autograd).
+        """
         encoder = self.encoder if learning else self.frozen_encoder
         return self.to_cells(self._forward(encoder, x))
 

@@ -1,4 +1,5 @@
-"""The frozen encoder in int8 (`encoder_precision: int8`): OpenVINO runs it, after NNCF's
+"""
+The frozen encoder in int8 (`encoder_precision: int8`): OpenVINO runs it, after NNCF's
 post-training quantisation calibrated it once on frames of the bundled sample bag.
 
 The quantised model is built the first time it is asked for (about a minute on 2 cores) and
@@ -45,8 +46,10 @@ def available() -> bool:
 
 
 class Int8Encoder(nn.Module):
-    """A compiled OpenVINO model behind the encoder's interface: (1, 3, S, S) float ->
-    (1, C, g, g) float. Frozen: it has no parameters and no gradient."""
+    """
+    A compiled OpenVINO model behind the encoder's interface: (1, 3, S, S) float ->
+    (1, C, g, g) float. Frozen: it has no parameters and no gradient.
+    """
 
     def __init__(self, compiled, input_shape: tuple[int, ...]):
         super().__init__()
@@ -63,8 +66,10 @@ class Int8Encoder(nn.Module):
 
 
 def calibration_frames(count: int | None = None) -> Iterator[np.ndarray]:
-    """`count` (default `CALIBRATION_FRAMES`) RGB frames spread evenly over the bundled
-    sample bag."""
+    """
+    `count` (default `CALIBRATION_FRAMES`) RGB frames spread evenly over the bundled
+    sample bag.
+    """
     from activeloc_ros.sources import BagSource, default_bag
     count = count or CALIBRATION_FRAMES
     source = BagSource(default_bag())
@@ -110,7 +115,8 @@ class DamagedError(WeightsError):
 def load(encoder: nn.Module, *, name: str, input_shape: tuple[int, ...],
          prepare: Callable[[np.ndarray], torch.Tensor], threads: int,
          cache: Path, stream: TextIO | None = None) -> Int8Encoder:
-    """The int8 version of the float32 `encoder`, built and cached on first use.
+    """
+    The int8 version of the float32 `encoder`, built and cached on first use.
 
     :param prepare: turns a calibration RGB frame into the encoder's input, exactly as the
         model prepares its frames (resize, normalise, mirrored border).
@@ -142,8 +148,10 @@ def damaged_files(path: Path) -> list[str]:
 
 
 def discard_damaged(cache: Path, stream: TextIO | None = None) -> list[Path]:
-    """Delete every int8 model in ``cache`` that its hashes or OpenVINO say is damaged, so
-    its next use builds it again from the weights; the models deleted."""
+    """
+    Delete every int8 model in ``cache`` that its hashes or OpenVINO say is damaged, so
+    its next use builds it again from the weights; the models deleted.
+    """
     out = stream or sys.stderr
     gone = []
     for xml in sorted((Path(cache) / 'int8').glob('*.xml')):
@@ -165,7 +173,8 @@ def discard_damaged(cache: Path, stream: TextIO | None = None) -> list[Path]:
 
 def build(encoder: nn.Module, path: Path, *, input_shape: tuple[int, ...],
           prepare: Callable[[np.ndarray], torch.Tensor], stream: TextIO | None = None) -> Path:
-    """Quantise `encoder` on the calibration frames and save it as OpenVINO IR at `path`
+    """
+    Quantise `encoder` on the calibration frames and save it as OpenVINO IR at `path`
     (written into a temporary folder, then moved: never half a model).
 
     :raises WeightsError: the folder cannot be written (found before the minute of
@@ -192,8 +201,10 @@ def build(encoder: nn.Module, path: Path, *, input_shape: tuple[int, ...],
 
 
 def _remove_stale_builds(folder: Path) -> None:
-    """Delete the build folders that killed builds left behind (up to 10 MB each); a build
-    still running elsewhere is minutes old, not an hour."""
+    """
+    Delete the build folders that killed builds left behind (up to 10 MB each); a build
+    still running elsewhere is minutes old, not an hour.
+    """
     for stale in folder.glob('.build-*'):
         try:
             if time.time() - stale.stat().st_mtime > STALE_BUILD_S:

@@ -1,4 +1,5 @@
-"""The online predictive-learning surprise model (Trehan & Aakur, WACV 2022, Sec. 3.2 and 4).
+"""
+The online predictive-learning surprise model (Trehan & Aakur, WACV 2022, Sec. 3.2 and 4).
 
 A CNN encoder turns each frame into a rows x cols grid of C-d features, one cell per 16 px of
 its input (14 x 14 at the paper's 224 x 224, 14 x 19 at 304 x 224: `input_aspect`). Each
@@ -68,6 +69,7 @@ _NO_LOSSES = {'global': 0.0, 'attn': 0.0, 'total': 0.0}
 @dataclass
 class Observation:
     """What `SurpriseModel.observe` made of one frame, for `learn`."""
+
     frame: np.ndarray                  # (H, W, 3) as given
     index: int
     t0: float                          # perf_counter at the start of `observe`
@@ -82,6 +84,7 @@ class Observation:
 @dataclass
 class PerceptionResult:
     """What one `SurpriseModel.step` returns."""
+
     surprise_map: np.ndarray           # (rows, cols) float32, >= 0, sums to 1
     cell: tuple[int, int]              # (row, col) of the argmax
     location_px: tuple[float, float]   # (x, y) centre of that cell in input-frame pixels
@@ -101,17 +104,20 @@ def seed_everything(seed: int) -> None:
 
 
 def _finite(tensors) -> bool:
-    """Whether every value of the tensors is finite: one sum per tensor (a NaN or an
+    """
+    Whether every value of the tensors is finite: one sum per tensor (a NaN or an
     infinity anywhere makes it non-finite), two thirds of the time of a norm over the
     predictor's weights. A sum that overflows counts as not finite: a false alarm, which
-    only skips an update, at magnitudes near 1e38 (a norm's squares overflow at 1e19)."""
+    only skips an update, at magnitudes near 1e38 (a norm's squares overflow at 1e19).
+    """
     sums = [t.sum(dtype=torch.float32) for t in tensors
             if t is not None and t.is_floating_point()]
     return not sums or bool(torch.isfinite(torch.stack(sums).sum()))
 
 
 class SurpriseModel:
-    """Encoder + predictor + online learner: `step(frame)` -> PerceptionResult.
+    """
+    Encoder + predictor + online learner: `step(frame)` -> PerceptionResult.
 
     :param cfg: the configuration (the only argument that shapes the model).
     :param encoder: an already built encoder to use instead of `build_encoder(cfg...)`;
@@ -214,8 +220,10 @@ class SurpriseModel:
 
     # -- one frame ---------------------------------------------------------------------------
     def _encode(self, x: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor]:
-        """Features (N, C) of the current frame and, where the encoder learns through both
-        (`encoder_grad: both`), of the previous one again with the current weights."""
+        """
+        Features (N, C) of the current frame and, where the encoder learns through both
+        (`encoder_grad: both`), of the previous one again with the current weights.
+        """
         if not (self.train_encoder and self.x_prev is not None):
             with torch.inference_mode():
                 f_cur = self.features.of(x)[0]
@@ -229,18 +237,22 @@ class SurpriseModel:
     def step(self, frame: np.ndarray, *, t: float | None = None,
              on_map: Callable[[PerceptionResult], None] | None = None,
              late: Callable[[], bool] | None = None) -> PerceptionResult:
-        """Encode a frame captured at ``t`` (seconds, any origin; None: unknown), score
+        """
+        Encode a frame captured at ``t`` (seconds, any origin; None: unknown), score
         the prediction made for it, update online, predict on (`observe`, then `learn`,
         which hands the map to ``on_map`` before its optimiser step, and asks ``late``
-        whether to skip that step)."""
+        whether to skip that step).
+        """
         return self.learn(self.observe(frame, t=t), on_map=on_map, late=late)
 
     def observe(self, frame: np.ndarray, *, t: float | None = None) -> Observation:
-        """The first half of `step`: the frame's encoder input, its features, the
+        """
+        The first half of `step`: the frame's encoder input, its features, the
         camera's motion and the time since the frame before. It reads and writes only its
         own memory of the previous frame, so it may run on the next frame while `learn`
         runs on this one: `learn(observe(f))` for each frame in turn gives the same results
-        in either order."""
+        in either order.
+        """
         cfg = self.cfg
         t0 = time.perf_counter()
         timings = dict.fromkeys(('preprocess', 'encode', 'predict', 'update'), 0.0)
@@ -271,7 +283,8 @@ class SurpriseModel:
     def learn(self, obs: Observation, *,
               on_map: Callable[[PerceptionResult], None] | None = None,
               late: Callable[[], bool] | None = None) -> PerceptionResult:
-        """The second half of `step`: score the prediction made for the observed frame,
+        """
+        The second half of `step`: score the prediction made for the observed frame,
         update online, and remember what the next prediction needs.
 
         :param on_map: called once with the frame's result as soon as its map exists:
@@ -352,9 +365,11 @@ class SurpriseModel:
         return dataclasses.replace(result, lr=lr)
 
     def _follow_camera(self, img: np.ndarray) -> tuple[np.ndarray | None, torch.Tensor | None]:
-        """The camera's warp from the previous frame to this one (None if it did not move),
+        """
+        The camera's warp from the previous frame to this one (None if it did not move),
         and with `ego_warp: image` the previous view warped into this one and encoded again
-        (None otherwise: `learn` warps the previous features cell by cell)."""
+        (None otherwise: `learn` warps the previous features cell by cell).
+        """
         gray = img if img.dtype == np.uint8 else np.clip(img, 0, 255).astype(np.uint8)
         keys = self.ego.keypoints(cv2.cvtColor(gray, cv2.COLOR_RGB2GRAY))
         prev_keys, self.keys_prev = self.keys_prev, keys
@@ -383,8 +398,10 @@ class SurpriseModel:
                 setattr(self, name, m / total if total > 0 else None)
 
     def _image_change(self, img: np.ndarray, warp: np.ndarray | None) -> torch.Tensor | None:
-        """(N,) per-cell change of the picture since the previous frame, the camera's own
-        motion taken out (`motion_source: image`); None on a first frame."""
+        """
+        (N,) per-cell change of the picture since the previous frame, the camera's own
+        motion taken out (`motion_source: image`); None on a first frame.
+        """
         current = motion.grey(np.clip(img, 0, 255))
         previous, self.grey_prev = self.grey_prev, current
         if previous is None:
@@ -394,16 +411,20 @@ class SurpriseModel:
 
     def _warp_features(self, f_prev: torch.Tensor, f_cur: torch.Tensor,
                        warp: np.ndarray) -> torch.Tensor:
-        """(N, C) previous features moved into the current view (`ego_warp: features`);
-        where the previous view saw nothing, the current features: no change there."""
+        """
+        (N, C) previous features moved into the current view (`ego_warp: features`);
+        where the previous view saw nothing, the current features: no change there.
+        """
         ones = torch.ones(self.cells, 1)                        # how much of a cell was seen
         moved = egomotion.warp_cells(torch.cat([f_prev, ones], 1)[None], warp, self.input_wh,
                                      self.grid)[0]
         return moved[:, :-1] + (1.0 - moved[:, -1:]) * f_cur
 
     def _skip_late(self, late: Callable[[], bool] | None) -> bool:
-        """Whether to skip this frame's optimiser step: it is late, and fewer than
-        `skip_late_updates` frames in a row were skipped before it."""
+        """
+        Whether to skip this frame's optimiser step: it is late, and fewer than
+        `skip_late_updates` frames in a row were skipped before it.
+        """
         if late is None or self.late_skips >= self.cfg.skip_late_updates or not late():
             self.late_skips = 0
             return False

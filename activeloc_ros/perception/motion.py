@@ -1,4 +1,5 @@
-"""Where the picture changed between two frames once the camera's own motion is taken out.
+"""
+Where the picture changed between two frames once the camera's own motion is taken out.
 
 Pixel-level and ROS-free. The previous grey image is warped into the new view with the
 camera's estimated motion (`egomotion`), and a pixel counts as changed by as much as it
@@ -23,8 +24,10 @@ def grey(image: np.ndarray) -> np.ndarray:
 
 def into_view(previous: np.ndarray, warp: np.ndarray | None
               ) -> tuple[np.ndarray, np.ndarray | None]:
-    """(`previous` moved by `warp` into the new view, the mask (uint8, 1) of the pixels the
-    previous view saw); the image as it is and no mask when the camera did not move."""
+    """
+    (`previous` moved by `warp` into the new view, the mask (uint8, 1) of the pixels the
+    previous view saw); the image as it is and no mask when the camera did not move.
+    """
     if warp is None:
         return previous, None
     h, w = previous.shape[:2]
@@ -38,9 +41,11 @@ def into_view(previous: np.ndarray, warp: np.ndarray | None
 
 def residual(previous: np.ndarray, current: np.ndarray, warp: np.ndarray | None, *,
              tolerance_px: int = 1) -> np.ndarray:
-    """(H, W) change of `current` against `previous` (grey, float32) moved by `warp` (3x3,
+    """
+    (H, W) change of `current` against `previous` (grey, float32) moved by `warp` (3x3,
     previous -> current pixels; None: the camera did not move). 0 where the previous view
-    saw nothing."""
+    saw nothing.
+    """
     previous, seen = into_view(previous, warp)
     if tolerance_px > 0:
         kernel = np.ones((2 * tolerance_px + 1,) * 2, np.uint8)
@@ -62,7 +67,8 @@ def cell_means(change: np.ndarray, grid: tuple[int, int]) -> np.ndarray:
 
 
 class FrameDifference:
-    """Ego-motion compensated frame differencing on a fixed working size: per grid cell, the
+    """
+    Ego-motion compensated frame differencing on a fixed working size: per grid cell, the
     mean residual change (grey levels) between consecutive frames.
 
     :param size: square working size (the model's input, so its grid cells are the same).
@@ -110,7 +116,8 @@ class FrameDifference:
 
 
 class FlowMagnitude(FrameDifference):
-    """Dense optical flow (OpenCV's DIS) with the camera's own motion taken out as
+    """
+    Dense optical flow (OpenCV's DIS) with the camera's own motion taken out as
     `FrameDifference` takes it out: per grid cell, the mean length (pixels of the working
     size) of the flow from the previous frame, warped into the new view, to this one.
 

@@ -1,6 +1,8 @@
-"""The perception node's parameters, ROS-free: one per `PerceptionConfig` field (the model's
+"""
+The perception node's parameters, ROS-free: one per `PerceptionConfig` field (the model's
 defaults, validated by the config's own check) and the node's own. The node declares them,
-bringup checks them before any node starts, and the benchmarks read them."""
+bringup checks them before any node starts, and the benchmarks read them.
+"""
 import dataclasses
 
 from activeloc_ros.checks import file_or_empty, in_range, one_of, Param, positive

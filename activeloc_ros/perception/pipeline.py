@@ -1,4 +1,5 @@
-"""Encode the next frame while the model learns from this one.
+"""
+Encode the next frame while the model learns from this one.
 
 `SurpriseModel.step` is `learn(observe(frame))`. `observe` (resize, ego-motion, the encoder)
 touches only its own memory of the previous frame, so a second thread can run `learn`
@@ -25,7 +26,8 @@ class PipelineError(ActivelocError):
 
 
 class Pipeline:
-    """Two-stage `step`: `submit` observes in the caller's thread, a learning thread learns
+    """
+    Two-stage `step`: `submit` observes in the caller's thread, a learning thread learns
     and hands each result to `on_result(result, tag)` (called in that thread) as soon as
     its map exists, before the optimiser step.
 
@@ -46,7 +48,8 @@ class Pipeline:
         self._thread.start()
 
     def submit(self, frame: np.ndarray, tag: Any = None, *, t: float | None = None) -> None:
-        """Observe `frame`, captured at `t` (s; None: unknown), now and queue it for
+        """
+        Observe `frame`, captured at `t` (s; None: unknown), now and queue it for
         learning; `tag` comes back with its result.
 
         :raises FrameError: the frame is malformed (nothing is queued).
@@ -64,7 +67,8 @@ class Pipeline:
                 self._check()
 
     def busy(self) -> bool:
-        """Whether an observed frame already waits for the learner: a frame submitted now
+        """
+        Whether an observed frame already waits for the learner: a frame submitted now
         would wait for a whole learning step, so a camera's caller had better skip it and
         take a newer one once the learner is free.
 

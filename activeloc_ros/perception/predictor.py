@@ -1,4 +1,5 @@
-"""The predictor and its losses: what the paper's Sec. 3.2 defines, with no state of its own.
+"""
+The predictor and its losses: what the paper's Sec. 3.2 defines, with no state of its own.
 
 `Predictor` maps each cell's features to its predicted next features (attention and stacked
 LSTMs, all cells one batch); the functions below weigh its error by the motion, score it
@@ -45,7 +46,8 @@ class Predictor(nn.Module):
 
     def forward(self, f: torch.Tensor, state: tuple[torch.Tensor, torch.Tensor]
                 ) -> tuple[torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
-        """Predict each cell's next feature from its current one.
+        """
+        Predict each cell's next feature from its current one.
 
         :param f: (N, C) features of the N cells.
         :param state: (h, c), each (L, N, H), after the previous frame.
@@ -72,10 +74,12 @@ class Predictor(nn.Module):
 
 
 class GateProduct(torch.autograd.Function):
-    """An LSTM's gates, [x, h] W^T + b, as `nn.Linear` on the concatenation computes them
+    """
+    An LSTM's gates, [x, h] W^T + b, as `nn.Linear` on the concatenation computes them
     (under autocast too), but whose backward skips the product that only the input's part
     of the concatenation needs when that part asks for no gradient: the state h never does
-    (it is detached between frames), which saves 23% of the update's arithmetic."""
+    (it is detached between frames), which saves 23% of the update's arithmetic.
+    """
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, h: torch.Tensor, weight: torch.Tensor,
@@ -121,9 +125,11 @@ GAP_FACTORS = (0.25, 4.0)   # a burst of frames or a pause does not make the wei
 
 
 def gap_factor(gap: float | None, period: float, power: float) -> float:
-    """How much the motion scale grows for frames ``gap`` seconds apart (rounded to the
+    """
+    How much the motion scale grows for frames ``gap`` seconds apart (rounded to the
     millisecond, against stamp jitter) when it was set for frames ``period`` apart:
-    (gap / period) ** power, within `GAP_FACTORS`. 1 without a period (0) or a usable gap."""
+    (gap / period) ** power, within `GAP_FACTORS`. 1 without a period (0) or a usable gap.
+    """
     gap = round(gap, 3) if gap is not None and math.isfinite(gap) else 0.0
     if not period or gap <= 0:
         return 1.0
@@ -160,7 +166,8 @@ def action_location(grid: torch.Tensor, kind: str, share: float,
                     prior: float = 0.0, floor: str = 'zero', *,
                     region_share: float = 0.5,
                     region_spread: float = 0.0) -> tuple[float, float]:
-    """(x, y) of the action on a (rows, cols) map, in cells (0.5 = the first cell's centre):
+    """
+    (x, y) of the action on a (rows, cols) map, in cells (0.5 = the first cell's centre):
     'peak' the argmax cell's centre; 'mass' the centroid of the cells that reach `share` of
     the peak, each weighted by its map value (`floor` 'zero') or by its height above the
     map's lowest cell ('min'; a map with nothing above its floor gives the grid's centre);
@@ -171,7 +178,8 @@ def action_location(grid: torch.Tensor, kind: str, share: float,
     mean of that centre at three bars, `region_share` and `region_spread` below and above
     it: a cell crossing one bar moves the location by a sixth of a cell, not half of one.
     With `prior` > 0 the map is first weighted by a Gaussian of that width (cells) on the
-    grid's centre, where the camera looks."""
+    grid's centre, where the camera looks.
+    """
     rows, cols = grid.shape
     ys, xs = torch.meshgrid(torch.arange(rows) + 0.5, torch.arange(cols) + 0.5, indexing='ij')
     near = (torch.exp(-((xs - cols / 2) ** 2 + (ys - rows / 2) ** 2) / (2 * prior ** 2))

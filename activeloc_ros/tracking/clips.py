@@ -1,4 +1,5 @@
-"""Synthetic static-camera clips: one dominant person playing an action in a tracking-world
+"""
+Synthetic static-camera clips: one dominant person playing an action in a tracking-world
 scene (`scenes`), seen by a camera that never moves, with each person's exact box per frame.
 
 A clip is decided whole before it is rendered, from ``numpy.random.default_rng([seed,
@@ -55,7 +56,8 @@ LIGHT_NAMES = {'lightDirection': 'direction', 'lightColor': 'colour', 'lightDist
 
 @dataclass(frozen=True)
 class ClipConfig:
-    """What every clip of a set shares.
+    """
+    What every clip of a set shares.
 
     :param min_visible_px: fewer of a person's pixels than this is not visible (0: by the
         image's area, 12 at 640x360).
@@ -84,8 +86,10 @@ class ClipConfig:
 
 @dataclass(frozen=True)
 class Camera:
-    """A fixed pinhole camera at (x, y, z) m looking along ``yaw`` (rad), ``tilt_deg`` above
-    the horizon (< 0: down), ``hfov_deg`` across a ``width`` x ``height`` px picture."""
+    """
+    A fixed pinhole camera at (x, y, z) m looking along ``yaw`` (rad), ``tilt_deg`` above
+    the horizon (< 0: down), ``hfov_deg`` across a ``width`` x ``height`` px picture.
+    """
 
     x: float
     y: float
@@ -130,8 +134,10 @@ class Camera:
 
     def sees_person(self, xy: np.ndarray, scale: float = 1.0, margin: float = 2.0
                     ) -> np.ndarray:
-        """Per ground point (N, 2): is a person standing there wholly in the picture (feet,
-        head and shoulders ``margin`` px inside)?"""
+        """
+        Per ground point (N, 2): is a person standing there wholly in the picture (feet,
+        head and shoulders ``margin`` px inside)?
+        """
         xy = np.asarray(xy, float).reshape(-1, 2)
         side = 0.4 * scale * self.axes()[1][:2]
         ok = np.ones(len(xy), bool)
@@ -157,8 +163,10 @@ class Camera:
 
 @dataclass
 class Motion:
-    """One person's part in a clip, decided before rendering: which clip it plays and where
-    it is in each frame."""
+    """
+    One person's part in a clip, decided before rendering: which clip it plays and where
+    it is in each frame.
+    """
 
     role: str               # 'actor', or one of DISTRACTOR_KINDS
     clip: str
@@ -181,8 +189,10 @@ class Motion:
 
 @dataclass(frozen=True)
 class Frame:
-    """A rendered frame, RGB (H, W, 3), and the actor's and each distractor's box (x, y,
-    w, h; None: not visible)."""
+    """
+    A rendered frame, RGB (H, W, 3), and the actor's and each distractor's box (x, y,
+    w, h; None: not visible).
+    """
 
     index: int
     rgb: np.ndarray
@@ -202,8 +212,10 @@ def _plain(value):
 
 
 class SyntheticClip:
-    """Clip ``index`` of ``seed``, built and planned in its own pybullet client; `frames`
-    renders it. Close it (or use it as a context manager) to free the client."""
+    """
+    Clip ``index`` of ``seed``, built and planned in its own pybullet client; `frames`
+    renders it. Close it (or use it as a context manager) to free the client.
+    """
 
     def __init__(self, seed: int, index: int, config: ClipConfig = ClipConfig()):
         self.config, self.seed, self.index = config, seed, index
@@ -276,8 +288,10 @@ class SyntheticClip:
         return cam.ground(d, rng.uniform(*across) * half)
 
     def _seen(self, points: np.ndarray, scale: float) -> bool:
-        """Is a person at every point wholly in the picture, on free ground, and seen past
-        every prop?"""
+        """
+        Is a person at every point wholly in the picture, on free ground, and seen past
+        every prop?
+        """
         cam, plan = self.camera, self.plan
         points = np.asarray(points, float).reshape(-1, 2)
         if not cam.sees_person(points, scale).all():
@@ -294,8 +308,10 @@ class SyntheticClip:
 
     def _route(self, rng: np.random.Generator, sample, length: float, *, min_leg: float,
                scale: float, seen: bool) -> np.ndarray | None:
-        """Waypoints from ``sample(rng, k)`` (the k-th) whose legs are clear and add up to
-        ``length`` m; None if none is found."""
+        """
+        Waypoints from ``sample(rng, k)`` (the k-th) whose legs are clear and add up to
+        ``length`` m; None if none is found.
+        """
         first = next((p for p in (sample(rng, 0) for _ in range(60)) if self._seen([p], scale)),
                      None)
         if first is None:
@@ -397,8 +413,10 @@ class SyntheticClip:
         return made
 
     def _distractor(self, rng: np.random.Generator) -> Motion | None:
-        """A smaller, farther person: a walker, a slow walker or one standing idle, always
-        `BEHIND` the actor, and clear of everyone else."""
+        """
+        A smaller, farther person: a walker, a slow walker or one standing idle, always
+        `BEHIND` the actor, and clear of everyone else.
+        """
         cfg = self.config
         kind = str(rng.choice(DISTRACTOR_KINDS, p=[0.4, 0.3, 0.3]))
         scale, colours = rng.uniform(0.82, 1.0), clothes(rng)
@@ -469,8 +487,10 @@ class SyntheticClip:
 
 
 def _clear_of(point, radius: float, eye, targets: np.ndarray) -> bool:
-    """Does a disc at ``point`` keep off every sight line from ``eye`` to ``targets`` (N, 2)
-    and off the targets themselves?"""
+    """
+    Does a disc at ``point`` keep off every sight line from ``eye`` to ``targets`` (N, 2)
+    and off the targets themselves?
+    """
     p, e = np.asarray(point, float), np.asarray(eye, float)
     seg = np.asarray(targets, float) - e
     along = np.clip(((p - e) @ seg.T) / np.maximum((seg ** 2).sum(1), 1e-9), 0.0, 1.0)
@@ -479,8 +499,10 @@ def _clear_of(point, radius: float, eye, targets: np.ndarray) -> bool:
 
 
 def _lighting(rng: np.random.Generator) -> dict:
-    """TinyRenderer's light: from a random side and height, tinted, with shadows half the
-    time (they double the rendering time)."""
+    """
+    TinyRenderer's light: from a random side and height, tinted, with shadows half the
+    time (they double the rendering time).
+    """
     azimuth, elevation = rng.uniform(0, math.tau), rng.uniform(math.radians(25), math.radians(80))
     tint = rng.uniform(0.75, 1.0, 3)
     return {'lightDirection': [math.cos(elevation) * math.cos(azimuth),

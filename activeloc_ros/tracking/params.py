@@ -1,5 +1,7 @@
-"""The tracking node's parameters, ROS-free: the node declares them, bringup checks them
-before any node starts."""
+"""
+The tracking node's parameters, ROS-free: the node declares them, bringup checks them
+before any node starts.
+"""
 from activeloc_ros.checks import in_range, non_negative, one_of, Param, positive
 from activeloc_ros.tracking.scenes import SCENES
 from activeloc_ros.tracking.world import TARGETS

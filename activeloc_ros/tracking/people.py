@@ -1,4 +1,5 @@
-"""People of the tracking world: pybullet's DeepMimic humanoid playing motion-capture clips,
+"""
+People of the tracking world: pybullet's DeepMimic humanoid playing motion-capture clips,
 the two target behaviours of gym-unrealcv's tracking worlds, and `follow`, a walk along
 given waypoints (the synthetic clips' people).
 
@@ -35,8 +36,11 @@ def _xyzw(wxyz) -> list[float]:
 
 @dataclass
 class Clip:
-    """One motion-capture clip: per frame the root's height and sideways offset (m), its
-    rotation (Y up, x,y,z,w) and the joints' values in `CLIP_JOINTS` order."""
+    """
+    One motion-capture clip: per frame the root's height and sideways offset (m), its
+    rotation (Y up, x,y,z,w) and the joints' values in `CLIP_JOINTS` order.
+    """
+
     name: str
     frame_s: float
     height: np.ndarray            # (F,) m
@@ -66,8 +70,10 @@ class Clip:
                    np.array([_xyzw(f[4:8]) for f in frames]), joints, abs(travel))
 
     def in_place(self) -> 'Clip':
-        """This clip with its root held over the spot it is played on: without the sideways
-        drift (up to 1.5 m in punch) that a looping clip jumps back from at every loop."""
+        """
+        This clip with its root held over the spot it is played on: without the sideways
+        drift (up to 1.5 m in punch) that a looping clip jumps back from at every loop.
+        """
         return dataclasses.replace(self, side=np.zeros_like(self.side))
 
     def __len__(self) -> int:
@@ -86,7 +92,8 @@ def clothes(rng: np.random.Generator) -> dict[str, tuple]:
 
 
 class Person:
-    """A humanoid in a pybullet world that plays a clip where a behaviour puts it.
+    """
+    A humanoid in a pybullet world that plays a clip where a behaviour puts it.
 
     :param client: a ``pybullet_utils.bullet_client.BulletClient``.
     :param colours: RGBA per body part (torso, limbs, head).
@@ -106,8 +113,10 @@ class Person:
         self.phase = 0.0
 
     def place(self, x: float, y: float, heading: float, step_m: float, dt: float) -> None:
-        """Pose the person at (x, y) facing ``heading`` (rad), having walked ``step_m`` m
-        (travel clips) or played ``dt`` s (the others) since the last pose."""
+        """
+        Pose the person at (x, y) facing ``heading`` (rad), having walked ``step_m`` m
+        (travel clips) or played ``dt`` s (the others) since the last pose.
+        """
         clip, c = self.clip, self.client
         if clip.stride_m > 0:
             self.phase += step_m / (clip.stride_m * self.scale)
@@ -126,9 +135,11 @@ class Person:
 
 def follow(waypoints: np.ndarray, speed: float, frames: int, fps: float, *,
            heading: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Positions (F, 2), headings (F,) and distance walked since the frame before (F,) of a
+    """
+    Positions (F, 2), headings (F,) and distance walked since the frame before (F,) of a
     person going along ``waypoints`` at ``speed`` from frame 0 (standing at the first one,
-    facing ``heading``, when there is a single waypoint or no speed)."""
+    facing ``heading``, when there is a single waypoint or no speed).
+    """
     points = np.asarray(waypoints, float).reshape(-1, 2)
     if len(points) == 1 or speed <= 0:
         return (np.repeat(points[:1], frames, 0), np.full(frames, heading), np.zeros(frames))
@@ -150,6 +161,7 @@ def follow(waypoints: np.ndarray, speed: float, frames: int, fps: float, *,
 @dataclass
 class Walker:
     """Where a person is on the ground and how it moves: x, y (m), heading (rad), speed."""
+
     x: float
     y: float
     heading: float
@@ -157,7 +169,8 @@ class Walker:
 
 
 class Behaviour:
-    """A target behaviour of gym-unrealcv's tracking worlds, on a 2D ground plan.
+    """
+    A target behaviour of gym-unrealcv's tracking worlds, on a 2D ground plan.
 
     - ``ram``: random turns and speeds, a new pair every 1-3 s (*Ram*);
     - ``nav``: walks to random goals in free space, a new speed for each (*Nav*);
@@ -181,8 +194,10 @@ class Behaviour:
 
     def step(self, w: Walker, t: float, dt: float, *,
              movers: Sequence[tuple[float, float, float]] = ()) -> float:
-        """Move ``w`` over ``dt`` s ending at ``t``, never into ``movers`` (x, y, r: the
-        base); returns the distance walked."""
+        """
+        Move ``w`` over ``dt`` s ending at ``t``, never into ``movers`` (x, y, r: the
+        base); returns the distance walked.
+        """
         if self.kind == 'stay':
             return 0.0
         rng = self.rng

@@ -1,4 +1,5 @@
-"""AD-VAT's tracking reward and the scores of the paper's Table 1.
+"""
+AD-VAT's tracking reward and the scores of the paper's Table 1.
 
 The reward of one step (gym-unrealcv ``envs/tracking/reward.py``; the paper's Eq. 5 with
 rho_max = 250 cm, theta_max = 90 deg is the same quantity)::
@@ -79,10 +80,12 @@ LOST_CAUSES = ('pinned', 'hidden', 'out of view', 'other')
 
 def lost_cause(seen: Sequence[bool], bearing_deg: Sequence[float], blocked: Sequence[bool],
                *, half_fov_deg: float, window: int = 60) -> str:
-    """Why an episode lost its target, from its last ``window`` steps: ``pinned`` when a
+    """
+    Why an episode lost its target, from its last ``window`` steps: ``pinned`` when a
     bump held the base back on half of them or more, else ``hidden`` when the target stood
     inside the view unseen (an obstacle between them) on a third or more, else ``out of
-    view`` when it stood outside the view on a third or more, else ``other``."""
+    view`` when it stood outside the view on a third or more, else ``other``.
+    """
     seen, bearing, blocked = (list(x)[-window:] for x in (seen, bearing_deg, blocked))
     inside = [abs(b) < half_fov_deg for b in bearing]
     if 2 * sum(blocked) >= len(blocked):

@@ -1,4 +1,5 @@
-"""The four scenes of the tracking experiment, analogues of the paper's Table 1 worlds, and
+"""
+The four scenes of the tracking experiment, analogues of the paper's Table 1 worlds, and
 their ground plan.
 
 Each scene is built from its seed: layout, textures, props and people's clothes. The props
@@ -33,13 +34,16 @@ PAPER_NAMES = {'room': 'DuelingRoom', 'urban': 'UrbanCity', 'snow': 'SnowVillage
 @dataclass
 class Plan:
     """The ground plan: a rectangle (x0, y0, x1, y1) and circular obstacles (x, y, r), m."""
+
     bounds: tuple[float, float, float, float]
     obstacles: list[tuple[float, float, float]] = field(default_factory=list)
 
     def free(self, x: float, y: float, radius: float = 0.0, *,
              movers: Sequence[tuple[float, float, float]] = ()) -> bool:
-        """Is a disc of ``radius`` at (x, y) inside the bounds and clear of the obstacles
-        and of ``movers`` (x, y, r: the base, other people)?"""
+        """
+        Is a disc of ``radius`` at (x, y) inside the bounds and clear of the obstacles
+        and of ``movers`` (x, y, r: the base, other people)?
+        """
         x0, y0, x1, y1 = self.bounds
         if not (x0 + radius <= x <= x1 - radius and y0 + radius <= y <= y1 - radius):
             return False
@@ -48,10 +52,12 @@ class Plan:
 
     def slide(self, x: float, y: float, dx: float, dy: float, radius: float, *,
               movers: Sequence[tuple[float, float, float]] = ()) -> tuple[float, float]:
-        """Where a disc of ``radius`` at (x, y) that moves by (dx, dy) ends: there if that is
+        """
+        Where a disc of ``radius`` at (x, y) that moves by (dx, dy) ends: there if that is
         free; else the part of the move along what it touches, with the part into each
         obstacle, mover or wall taken out (it slides along them, as a character of a game
-        engine does); else where it is."""
+        engine does); else where it is.
+        """
         nx, ny = x + dx, y + dy
         if self.free(nx, ny, radius, movers=movers):
             return nx, ny
@@ -82,9 +88,11 @@ class Plan:
 
     def ranges(self, x: float, y: float, directions: np.ndarray, *, max_range: float,
                movers: Sequence[tuple[float, float, float]] = ()) -> np.ndarray:
-        """What a planar range sensor at (x, y) measures along ``directions`` (radians, in
+        """
+        What a planar range sensor at (x, y) measures along ``directions`` (radians, in
         the plan's frame): the distance to the nearest obstacle, mover or wall, m; inf
-        where nothing lies within ``max_range``. A sensor inside an obstacle reads 0."""
+        where nothing lies within ``max_range``. A sensor inside an obstacle reads 0.
+        """
         dx, dy = np.cos(directions), np.sin(directions)
         x0, y0, x1, y1 = self.bounds
         with np.errstate(divide='ignore'):
@@ -103,8 +111,10 @@ class Plan:
 
     def steer_clear(self, x: float, y: float, heading: float, *, reach: float,
                     movers: Sequence[tuple[float, float, float]] = ()) -> float:
-        """``heading``, or the nearest heading (in 15 degree steps) whose path of ``reach`` m
-        stays free."""
+        """
+        ``heading``, or the nearest heading (in 15 degree steps) whose path of ``reach`` m
+        stays free.
+        """
         for k in range(13):
             for sign in (1, -1):
                 h = heading + sign * math.radians(15 * k)
@@ -216,6 +226,7 @@ class Builder:
 @dataclass
 class Scene:
     """What a scene builder made: its plan and how many distractors walk or play in it."""
+
     plan: Plan
     distractors: int
 

@@ -1,4 +1,5 @@
-"""`TrackingWorld`: the simulated active-tracking world (paper Sec. 4.1, Table 1), on the
+"""
+`TrackingWorld`: the simulated active-tracking world (paper Sec. 4.1, Table 1), on the
 same interface as the screen rig's `world.ScreenWorld`, so `closed_loop.run_episode` steps
 it with any pointer.
 
@@ -46,7 +47,8 @@ PERSON_RADIUS = 0.3        # and a person's
 
 @dataclass(frozen=True)
 class TrackingConfig:
-    """The tracking world's settings (defaults: the paper's set-up where it gives one).
+    """
+    The tracking world's settings (defaults: the paper's set-up where it gives one).
 
     :param target: the target's behaviour, gym-unrealcv's Nav or Ram.
     :param lost_steps: steps in a row with the target lost (r = -1) that end an episode
@@ -106,8 +108,10 @@ class TrackingConfig:
 
 @contextlib.contextmanager
 def quiet():
-    """Hold back what pybullet's C code prints while it starts and loads models (its build
-    time, argv, URDF warnings about the humanoid's joint axes)."""
+    """
+    Hold back what pybullet's C code prints while it starts and loads models (its build
+    time, argv, URDF warnings about the humanoid's joint axes).
+    """
     sys.stdout.flush()
     sys.stderr.flush()
     saved = os.dup(1), os.dup(2)
@@ -125,9 +129,11 @@ def quiet():
 
 def camera_image(client, width: int, height: int, view, projection,
                  **light) -> tuple[np.ndarray, np.ndarray]:
-    """TinyRenderer's RGB image (H, W, 3) and segmentation mask (body ids, -1 for none) of
+    """
+    TinyRenderer's RGB image (H, W, 3) and segmentation mask (body ids, -1 for none) of
     ``client`` through ``view`` and ``projection``; ``light``: getCameraImage's lighting
-    options (lightDirection, lightColor, shadow...)."""
+    options (lightDirection, lightColor, shadow...).
+    """
     _, _, rgba, _, seg = client.getCameraImage(width, height, view, projection,
                                                renderer=client.ER_TINY_RENDERER, **light)
     rgb = np.asarray(rgba, np.uint8).reshape(height, width, 4)[..., :3]
@@ -135,8 +141,10 @@ def camera_image(client, width: int, height: int, view, projection,
 
 
 def mask_box(seg: np.ndarray, body: int, min_px: int) -> tuple[int, int, int, int] | None:
-    """The box (x, y, w, h) round the pixels of ``body`` in a segmentation mask; None when
-    fewer than ``min_px`` of them show."""
+    """
+    The box (x, y, w, h) round the pixels of ``body`` in a segmentation mask; None when
+    fewer than ``min_px`` of them show.
+    """
     ys, xs = np.nonzero(seg == body)
     if len(xs) < max(min_px, 1):
         return None
@@ -145,7 +153,8 @@ def mask_box(seg: np.ndarray, body: int, min_px: int) -> tuple[int, int, int, in
 
 
 class TrackingWorld:
-    """One episode of the tracking experiment in scene ``scene`` from ``seed``.
+    """
+    One episode of the tracking experiment in scene ``scene`` from ``seed``.
 
     Call `close` (or use it as a context manager) to free the physics client.
     """
@@ -227,8 +236,10 @@ class TrackingWorld:
     # -- the world interface (world.ScreenWorld's) ---------------------------------------
 
     def controller(self, config: BaseConfig) -> BaseController:
-        """The controller this world's base takes commands from, told its camera: its
-        intrinsics, and its height and tilt (which the ground rule reads distances with)."""
+        """
+        The controller this world's base takes commands from, told its camera: its
+        intrinsics, and its height and tilt (which the ground rule reads distances with).
+        """
         cfg = self.config
         ctl = BaseController(dataclasses.replace(config, camera_height=cfg.camera_height,
                                                  camera_tilt_deg=cfg.camera_tilt_deg), t0=0.0)
@@ -241,8 +252,10 @@ class TrackingWorld:
         return self.config.step
 
     def times(self):
-        """Each control step's time, until the episode ends: ``max_steps`` steps, or the
-        target lost for ``lost_steps`` steps in a row."""
+        """
+        Each control step's time, until the episode ends: ``max_steps`` steps, or the
+        target lost for ``lost_steps`` steps in a row.
+        """
         cfg = self.config
         for index in range(cfg.max_steps):
             if self.lost_run >= cfg.lost_steps:
@@ -299,8 +312,10 @@ class TrackingWorld:
         return [(w.x, w.y, PERSON_RADIUS) for _, w, _ in self.people]
 
     def scan(self) -> Scan | None:
-        """The base's range sensor now: ``scan_rays`` rays round it from its heading (None
-        without one)."""
+        """
+        The base's range sensor now: ``scan_rays`` rays round it from its heading (None
+        without one).
+        """
         cfg, b = self.config, self.base
         if not cfg.scan_rays:
             return None
@@ -343,8 +358,10 @@ class TrackingWorld:
         return math.hypot(dx, dy), bearing
 
     def score_step(self) -> tuple[float, float, float]:
-        """Score the step now: AD-VAT's reward, relaxed reward and the bearing (rad); counts
-        the steps the target has been lost in a row."""
+        """
+        Score the step now: AD-VAT's reward, relaxed reward and the bearing (rad); counts
+        the steps the target has been lost in a row.
+        """
         distance, bearing = self.relative()
         r = rewards.reward(distance, bearing, rho=self.config.start_distance)
         relaxed = rewards.reward_relaxed(distance, bearing, rho=self.config.start_distance)
@@ -356,8 +373,10 @@ class TrackingWorld:
         return r, relaxed, bearing
 
     def score(self, record, newest_map=None, canvas=None) -> None:
-        """Fill ``record`` with the step's scores (`score_step`), the bearing error as AAE,
-        whether the target is in view and where the base and the target are."""
+        """
+        Fill ``record`` with the step's scores (`score_step`), the bearing error as AAE,
+        whether the target is in view and where the base and the target are.
+        """
         r, relaxed, bearing = self.score_step()
         record.scored = True
         record.aae_deg = abs(math.degrees(bearing))
@@ -370,8 +389,10 @@ class TrackingWorld:
         return rewards.score(self.rewards, self.rewards_relaxed, self.config.max_steps)
 
     def lost_cause(self, records) -> str | None:
-        """Why the episode of these records lost its target (`rewards.lost_cause`); None
-        when it ran to its end."""
+        """
+        Why the episode of these records lost its target (`rewards.lost_cause`); None
+        when it ran to its end.
+        """
         if len(self.rewards) >= self.config.max_steps:
             return None
         return rewards.lost_cause([r.in_view for r in records], [r.aae_deg for r in records],
