@@ -54,7 +54,9 @@ setup(
                  'flake8==7.5.0', 'flake8-blind-except==0.2.1', 'flake8-builtins==3.1.0',
                  'flake8-class-newline==1.6.0', 'flake8-comprehensions==3.17.0',
                  'flake8-deprecated==2.4.0', 'flake8-import-order==0.19.2',
-                 'flake8-quotes==3.4.0'],
+                 'flake8-quotes==3.4.0',
+                 # ament_pep257's (test_pep257.py)
+                 'pydocstyle==6.3.0'],
     },
     zip_safe=True,
     maintainer='activeloc_ros developers',
