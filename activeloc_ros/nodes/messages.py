@@ -54,10 +54,7 @@ def joint_state(joints_deg: Sequence[float], stamp=None):
 
 
 def camera_info(k, width: int, height: int, header):
-    """
-    A sensor_msgs/CameraInfo of a distortion-free pinhole camera with matrix ``k``
-    (3x3).
-    """
+    """A sensor_msgs/CameraInfo of a distortion-free pinhole camera with matrix ``k`` (3x3)."""
     from sensor_msgs.msg import CameraInfo
     info = CameraInfo(header=header, width=width, height=height, distortion_model='plumb_bob')
     info.k = [float(v) for v in k.ravel()]

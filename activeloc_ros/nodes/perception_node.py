@@ -136,10 +136,7 @@ class PerceptionNode(Node):
                                f'{wanted.name.lower()}: subscribed again with it')
 
     def on_parameters(self, values: dict, changed: set) -> None:
-        """
-        A run-time change (read-only parameters are refused before): the next frame uses
-        it.
-        """
+        """A run-time change (read-only parameters are refused before): the next frame uses it."""
         changed = changed & values.keys()     # (use_sim_time is rclpy's)
         self.params.update({name: values[name] for name in changed & self.params.keys()})
         self.get_logger().info('set at run time: ' + ', '.join(

@@ -357,10 +357,7 @@ class EfficientNetLite0Encoder(Encoder):
 # ---------------------------------------------------------------------------------------
 
 class Bottleneck(nn.Module):
-    """
-    ResNet v1 bottleneck: the stride sits on the first 1x1 conv (torchvision's v1.5 puts
-    it on the 3x3). Keys as torchvision's.
-    """
+    """ResNet v1 bottleneck: stride on the first 1x1 (v1.5's on the 3x3); torchvision's keys."""
 
     CONV_BN = (('conv1', 'bn1'), ('conv2', 'bn2'), ('conv3', 'bn3'),
                ('downsample.0', 'downsample.1'))
@@ -491,10 +488,7 @@ def fold_batchnorm(enc: Encoder) -> Encoder:
 # ---------------------------------------------------------------------------------------
 
 def make_encoder(name: str, *, head: bool) -> Encoder:
-    """
-    A randomly initialised encoder (on the current default device); `head` only where
-    the weights' source has an ImageNet classifier (`HAS_HEAD`).
-    """
+    """Build a random encoder on the default device; `head` where `HAS_HEAD` (a classifier)."""
     head = head and HAS_HEAD.get(name, False)
     if name in VGG_CFGS:
         return VGGEncoder(name, head=head, caffe=name == 'vgg19')

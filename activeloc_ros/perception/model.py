@@ -220,10 +220,7 @@ class SurpriseModel:
 
     # -- one frame ---------------------------------------------------------------------------
     def _encode(self, x: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor]:
-        """
-        Features (N, C) of the current frame and, where the encoder learns through both
-        (`encoder_grad: both`), of the previous one again with the current weights.
-        """
+        """Encode the frame (N, C); with `encoder_grad: both` the previous one again, too."""
         if not (self.train_encoder and self.x_prev is not None):
             with torch.inference_mode():
                 f_cur = self.features.of(x)[0]
@@ -398,10 +395,7 @@ class SurpriseModel:
                 setattr(self, name, m / total if total > 0 else None)
 
     def _image_change(self, img: np.ndarray, warp: np.ndarray | None) -> torch.Tensor | None:
-        """
-        (N,) per-cell change of the picture since the previous frame, the camera's own
-        motion taken out (`motion_source: image`); None on a first frame.
-        """
+        """Per-cell picture change (N,), the camera's own motion out; None on a first frame."""
         current = motion.grey(np.clip(img, 0, 255))
         previous, self.grey_prev = self.grey_prev, current
         if previous is None:
@@ -411,20 +405,14 @@ class SurpriseModel:
 
     def _warp_features(self, f_prev: torch.Tensor, f_cur: torch.Tensor,
                        warp: np.ndarray) -> torch.Tensor:
-        """
-        (N, C) previous features moved into the current view (`ego_warp: features`);
-        where the previous view saw nothing, the current features: no change there.
-        """
+        """Move previous features (N, C) into the current view; where unseen, the current ones."""
         ones = torch.ones(self.cells, 1)                        # how much of a cell was seen
         moved = egomotion.warp_cells(torch.cat([f_prev, ones], 1)[None], warp, self.input_wh,
                                      self.grid)[0]
         return moved[:, :-1] + (1.0 - moved[:, -1:]) * f_cur
 
     def _skip_late(self, late: Callable[[], bool] | None) -> bool:
-        """
-        Whether to skip this frame's optimiser step: it is late, and fewer than
-        `skip_late_updates` frames in a row were skipped before it.
-        """
+        """Skip this step? It is late, and fewer than `skip_late_updates` were skipped before."""
         if late is None or self.late_skips >= self.cfg.skip_late_updates or not late():
             self.late_skips = 0
             return False
