@@ -4,6 +4,7 @@ smoke run of `bench tracking` (one scene, one short episode).
 """
 import json
 import math
+import re
 import subprocess
 import sys
 
@@ -315,6 +316,8 @@ def test_the_benchmark_checks_each_answer_against_the_truth_of_its_step():
         reading = world.controller(config).distance_to((0, world.config.height - 40, 10, 40))
     scores = corner.scores()
     assert corner.located == 8 and scores['on_target'] == 0.0
+    assert sum(corner.off_target.values()) == 8      # what it saw at the corner instead
+    assert set(corner.off_target) <= {'ground', 'wall', 'furniture', 'distractor', 'sky'}
     assert scores['distance_error_m'] == pytest.approx(
         np.median([abs(reading - d) for d in distances]))
     unchecked = bench.Remembering(CornerPointer())       # no world: nothing to check against
@@ -329,7 +332,7 @@ def test_bench_tracking_smoke(tmp_path, capsys):
                        'encoder_precision=float32', '--jobs', '1', '--out', str(out),
                        '--quiet']) == 0
     text = capsys.readouterr().out
-    assert '| oracle | 1.00 |' in text           # all 12 steps of 12
+    assert '| oracle | 1.00 [1.00, 1.00] |' in text    # all 12 steps of 12, every episode
     result = json.loads((out / 'tracking.json').read_text())
     assert {r['method'] for r in result['methods']} == {'ours', 'kcf', 'oracle'}
     oracle = next(r for r in result['methods'] if r['method'] == 'oracle')
@@ -338,6 +341,10 @@ def test_bench_tracking_smoke(tmp_path, capsys):
     assert set(oracle['scenes']['room']['lost'].values()) == {0}    # ran to its end
     assert oracle['scenes']['room']['distance_error_m'] < 0.3
     assert '| on target | distance error |' in text
+    assert re.search(r'\| kcf \| [+-]\d\.\d\d \[[+-]\d\.\d\d, [+-]\d\.\d\d\], [01]/1 \|', text)
+    kcf = next(r for r in result['methods'] if r['method'] == 'kcf')['scenes']['room']
+    off = sum(kcf['off_target'].values())      # kcf's box, once it drifts, is elsewhere
+    assert off == round(12 * (1 - kcf['on_target']))
     for name in ('table1.md', 'table1.csv', 'room.png'):
         assert (out / name).stat().st_size > 0
     with av.open(str(out / 'videos' / 'room' / 'ours-0.mp4')) as container:
@@ -466,12 +473,43 @@ def test_the_world_tells_its_controller_where_its_camera_sits():
     assert ctl.intrinsics == config.intrinsics
 
 
+@pytest.mark.parametrize('scene, kinds', [
+    ('room', {'ground', 'wall', 'furniture'}),
+    ('urban', {'ground', 'facade', 'glass', 'post'}),
+    ('snow', {'ground', 'tree', 'hut'}),
+    ('parking', {'ground', 'deck', 'pillar', 'car'}),
+])
+def test_every_body_of_a_scene_says_what_it_is(scene, kinds):
+    """Where a location lands off the person is told by the kind of the body there."""
+    with TrackingWorld(scene, 3, TrackingConfig(max_steps=2)) as world:
+        assert set(world.kinds.values()) - {'person', 'distractor'} <= kinds
+        assert list(world.kinds.values()).count('person') == 1
+        world.observe()
+        x, y, w, h = world.view.truth_box          # she starts ahead, in view
+        seen = {world.kind_at(x + i * w / 8, y + j * h / 8) for i in range(9) for j in range(9)}
+        assert 'person' in seen
+        assert world.kind_at(-50, 10_000) in kinds | {'sky', 'distractor'}   # clipped
+
+
+def test_recall_intervals_and_paired_differences():
+    from activeloc_ros.bench.tracking_report import interval, paired
+    assert interval([0.5, 0.5, 0.5]) == (0.5, 0.5)
+    low, high = interval([0.0, 1.0] * 10)
+    assert low < 0.5 < high
+    episodes = [{'method': m, 'scene': 'room', 'episode': e, 'scores': {'recall': r}}
+                for m, rs in (('ours', [0.9, 0.8, 1.0, 0.7]), ('csrt', [0.5, 0.6, 0.4, 0.7]))
+                for e, r in enumerate(rs)]
+    mean, low, high, higher, n = paired({'episodes': episodes}, 'ours', 'csrt', 'room')
+    assert mean == pytest.approx(0.3) and 0 < low <= high and (higher, n) == (3, 4)
+    assert paired({'episodes': episodes}, 'ours', 'tld', 'room') is None
+
+
 def test_the_papers_table1_row_is_in_its_columns():
     """
     Paper Table 1, Ours: SnowVillage 0.68 / 0.16 (0.36), DuelingRoom 0.85 / 0.26 (0.41),
     UrbanCity 0.75 / 0.14 (0.40), ParkingLot 0.49 / 0.23 (0.46).
     """
-    from activeloc_ros.bench.tracking import PAPER_OURS
+    from activeloc_ros.bench.tracking_report import PAPER_OURS
     from activeloc_ros.tracking.scenes import PAPER_NAMES
     by_paper_name = {PAPER_NAMES[s]: v for s, v in PAPER_OURS.items()}
     assert by_paper_name == {'SnowVillage': (0.68, 0.16, 0.36),

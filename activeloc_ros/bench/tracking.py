@@ -27,8 +27,7 @@ of each scene and method): the camera view with the true box (green), the surpri
 the method's choice (red), beside a top-down map with both paths. All atomically.
 """
 import argparse
-import csv
-import io
+from collections import Counter
 import json
 import math
 from pathlib import Path
@@ -44,6 +43,7 @@ from activeloc_ros.bench import (
 from activeloc_ros.bench import methods
 from activeloc_ros.bench.methods import (
     method_pd, PD_PARAMS, table3_methods, TRACKER_METHODS)
+from activeloc_ros.bench.tracking_report import plots, summarise, table, to_csv
 from activeloc_ros.bench.tracking_video import TrackingVideo
 from activeloc_ros.bench.video import commit_video, run_keeping_results
 from activeloc_ros.closed_loop import MODES, Pointing, run_episode
@@ -53,21 +53,14 @@ from activeloc_ros.data import Box
 from activeloc_ros.errors import ActivelocError, ConfigError
 from activeloc_ros.paths import write_atomic
 from activeloc_ros.progress import Progress
-from activeloc_ros.tracking.reward import LOST_CAUSES
-from activeloc_ros.tracking.scenes import PAPER_NAMES, SCENES
+from activeloc_ros.tracking.scenes import SCENES
 
 MODEL_METHODS = table3_methods(BASE_PD)       # on the base, whose PD law is its own
 METHODS = (*MODEL_METHODS, 'random', 'oracle', *TRACKER_METHODS)
 MAIN_METHODS = ('ours', *TRACKER_METHODS, 'random', 'oracle')
 ABLATION_METHODS = tuple(m for m in MODEL_METHODS if m != 'ours')
 ABLATION_SCENE = 'room'
-SCORES = ('recall', 'precision', 'precision_relaxed', 'episode_length', 'reward', 'success',
-          'aae_deg', 'in_view', 'distance_m', 'on_target', 'distance_error_m')
 DISTANCE_RULES = ('ground', 'size')      # the forward rules that read a distance off a box
-# Paper Table 1, the Ours row: (recall, precision, relaxed precision) per scene. Its columns
-# are SnowVillage, DuelingRoom, UrbanCity, ParkingLot; DuelingRoom's is Table 3's full model.
-PAPER_OURS = {'snow': (0.68, 0.16, 0.36), 'room': (0.85, 0.26, 0.41),
-              'urban': (0.75, 0.14, 0.40), 'parking': (0.49, 0.23, 0.46)}
 
 
 def base_config(method: str, control: dict) -> BaseConfig:
@@ -92,8 +85,9 @@ class Remembering:
     """
     A pointer that keeps its newest answer, for the overlay video, and checks each answer
     against the truth of the step it was made on: whether the location lies on the target
-    (inside its true box), and how far the distance that the base controller's forward rule
-    reads from the answer's box (``witness.distance_to``) is from the true distance.
+    (inside its true box), what the camera saw there when it does not (``off_target``, by
+    `TrackingWorld.kind_at`), and how far the distance that the base controller's forward
+    rule reads from the answer's box (``witness.distance_to``) is from the true distance.
 
     :param world: the world the pointer looks at; its state is the view's when the pointer
         answers (None: nothing is checked).
@@ -106,6 +100,7 @@ class Remembering:
         self.last: Pointing | None = None
         self.located = 0                       # steps with a location
         self.on_target = 0                     # ... inside the target's true box
+        self.off_target: Counter = Counter()   # ... elsewhere, by what is there
         self.distance_errors: list[float] = []  # |forward rule's distance - true|, m
 
     def reset(self, sequence: str) -> None:
@@ -118,6 +113,8 @@ class Remembering:
             self.located += 1
             if view.truth_box is not None and Box(*view.truth_box).contains(*self.last.location):
                 self.on_target += 1
+            else:
+                self.off_target[self.world.kind_at(*self.last.location)] += 1
             reads = self.witness is not None and self.witness.config.forward in DISTANCE_RULES
             reading = self.witness.distance_to(self.last.box) if reads else None
             if reading is not None:
@@ -170,6 +167,7 @@ def _run_job(job: dict) -> dict:
                 video.finish()
             scores = {**world.episode_score().as_dict(), **pointer.scores()}
             lost = world.lost_cause(episode.records)
+            off_target = dict(pointer.off_target)
     except ActivelocError as err:
         return {**where, 'error': str(err)}
     except Exception:  # noqa: B902 - one broken run must not cost the others
@@ -181,7 +179,8 @@ def _run_job(job: dict) -> dict:
     # rate can look good while the base drives into the person and loses it beside itself
     gaps = [math.dist(r.base_xy, r.target_xy) for r in rows if r.base_xy and r.target_xy]
     scores['distance_m'] = float(np.median(gaps)) if gaps else math.nan
-    return {**where, 'scores': scores, 'lost': lost, 'seconds': time.perf_counter() - started,
+    return {**where, 'scores': scores, 'lost': lost, 'off_target': off_target,
+            'seconds': time.perf_counter() - started,
             'compute_ms': float(np.mean(episode.compute_s) * 1e3) if episode.compute_s else 0.0,
             'rewards': [round(r.reward, 4) for r in rows]}
 
@@ -217,127 +216,6 @@ def evaluate(work: list[dict], *, jobs: int, quiet: bool) -> list[dict]:
     if progress is not None:
         progress.close()
     return runs
-
-
-def summarise(runs: list[dict], methods: list[str], scenes: list[str]) -> dict:
-    """Per method and scene, the means over its episodes (failed runs are listed apart)."""
-    failed = [r for r in runs if 'error' in r]
-    rows = []
-    for method in methods:
-        per_scene = {}
-        for scene in scenes:
-            done = [r for r in runs if r['method'] == method and r['scene'] == scene
-                    and 'error' not in r]
-            if not done:
-                continue
-            per_scene[scene] = {k: _mean([r['scores'][k] for r in done]) for k in SCORES}
-            per_scene[scene]['episodes'] = len(done)
-            per_scene[scene]['compute_ms'] = float(np.mean([r['compute_ms'] for r in done]))
-            per_scene[scene]['lost'] = {c: sum(r['lost'] == c for r in done) for c in LOST_CAUSES}
-        rows.append({'method': method, 'scenes': per_scene})
-    return {'methods': rows, 'scenes': scenes,
-            'failed': [{k: r[k] for k in ('method', 'scene', 'episode', 'error')}
-                       for r in failed],
-            'episodes': [{k: r[k] for k in ('method', 'scene', 'episode', 'scores', 'lost',
-                                            'rewards')} for r in runs if 'error' not in r]}
-
-
-def _mean(values: list[float]) -> float:
-    """
-    Mean over the episodes that have the score (a method without boxes has no distance
-    error); nan when none has.
-    """
-    finite = [v for v in values if math.isfinite(v)]
-    return float(np.mean(finite)) if finite else math.nan
-
-
-def _cell(s: dict | None) -> str:
-    if s is None:
-        return '-'
-    return f'{s["recall"]:.2f} | {s["precision"]:.2f} ({s["precision_relaxed"]:.2f})'
-
-
-def table(result: dict, methods: list[str], scenes: list[str], *, title: str) -> str:
-    head = ' | '.join(f'{s} ({PAPER_NAMES[s]}) recall | precision (relaxed)' for s in scenes)
-    lines = [f'## {title}', '', f'| method | {head} |',
-             '|---|' + '---:|---:|' * len(scenes)]
-    for row in result['methods']:
-        if row['method'] in methods and row['scenes']:
-            lines.append(f'| {row["method"]} | '
-                         + ' | '.join(_cell(row['scenes'].get(s)) for s in scenes) + ' |')
-    if title.startswith('Table 1'):
-        lines.append('| ours, paper (Unreal) | ' + ' | '.join(
-            f'{PAPER_OURS[s][0]:.2f} | {PAPER_OURS[s][1]:.2f} ({PAPER_OURS[s][2]:.2f})'
-            for s in scenes) + ' |')
-        lines.append('| AD-VAT+, SmartTarget-RL, RandomTarget-RL | '
-                     + ' | '.join('reported in Unreal, not comparable | -' for _ in scenes)
-                     + ' |')
-    lines += ['', 'episode length, accumulated reward, success rate, mean |bearing| (deg), in '
-              'view (%), median distance to the person (m; the goal is 2.5), the share of '
-              'locations on the person (inside its true box, %), the median error of the '
-              "distance the forward rule reads from the method's box (m), ms per step:", '',
-              '| method | scene | length | reward | success | bearing | in view | distance '
-              '| on target | distance error | ms | lost: pinned, hidden, out of view, other |',
-              '|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|']
-    for row in result['methods']:
-        if row['method'] not in methods:
-            continue
-        for scene in scenes:
-            s = row['scenes'].get(scene)
-            if s is not None:
-                lines.append(f'| {row["method"]} | {scene} | {s["episode_length"]:.0f} | '
-                             f'{s["reward"]:.1f} | {100 * s["success"]:.0f}% | '
-                             f'{s["aae_deg"]:.1f} | {100 * s["in_view"]:.0f} | '
-                             f'{s["distance_m"]:.1f} | {_number(100 * s["on_target"], 0)} | '
-                             f'{_number(s["distance_error_m"], 2)} | {s["compute_ms"]:.0f} | '
-                             + ', '.join(str(s['lost'][c]) for c in LOST_CAUSES) + ' |')
-    return '\n'.join(lines) + '\n'
-
-
-def _number(value: float, digits: int) -> str:
-    return f'{value:.{digits}f}' if math.isfinite(value) else '-'
-
-
-def to_csv(result: dict) -> str:
-    out = io.StringIO()
-    w = csv.writer(out)
-    w.writerow(['method', 'scene', 'episodes', *SCORES, 'compute_ms'])
-    for row in result['methods']:
-        for scene, s in row['scenes'].items():
-            w.writerow([row['method'], scene, s['episodes'],
-                        *(f'{s[k]:.4f}' for k in SCORES), f'{s["compute_ms"]:.2f}'])
-    return out.getvalue()
-
-
-def plots(result: dict, out: Path) -> list[Path]:
-    """Per scene: recall, precision and relaxed precision of every method (PNG)."""
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    paths = []
-    keys = ('recall', 'precision', 'precision_relaxed')
-    for scene in result['scenes']:
-        rows = [r for r in result['methods'] if scene in r['scenes']]
-        if not rows:
-            continue
-        fig, ax = plt.subplots(figsize=(max(7, 0.7 * len(rows) + 3), 4))
-        width = 0.27
-        for i, key in enumerate(keys):
-            ax.bar(np.arange(len(rows)) + (i - 1) * width,
-                   [r['scenes'][scene][key] for r in rows], width, label=key)
-        ax.axhline(0, color='black', linewidth=0.6)
-        ax.set_xticks(np.arange(len(rows)), [r['method'] for r in rows], rotation=30,
-                      ha='right', fontsize=8)
-        ax.set_title(f'{scene} ({PAPER_NAMES[scene]}): higher is better')
-        ax.legend(fontsize=8)
-        fig.tight_layout()
-        buf = io.BytesIO()
-        fig.savefig(buf, format='png', dpi=110)
-        plt.close(fig)
-        path = out / f'{scene}.png'
-        write_atomic(path, buf.getvalue())
-        paths.append(path)
-    return paths
 
 
 # -- command line ----------------------------------------------------------------------------

@@ -180,6 +180,11 @@ class Builder:
     def __init__(self, client, rng: np.random.Generator, folder: Path):
         self.client, self.rng, self.folder = client, rng, folder
         self.textures: dict[str, int] = {}
+        self.kinds: dict[int, str] = {}    # body id -> what it is (tree, car, facade...)
+
+    def _made(self, body: int, kind: str) -> int:
+        self.kinds[body] = kind
+        return body
 
     def texture(self, kind: str) -> int:
         if kind not in self.textures:
@@ -187,28 +192,28 @@ class Builder:
         return self.textures[kind]
 
     def box(self, centre, half, rgba=(1, 1, 1, 1), texture: str | None = None,
-            yaw: float = 0.0) -> int:
+            yaw: float = 0.0, kind: str = 'prop') -> int:
         c = self.client
         shape = c.createVisualShape(c.GEOM_BOX, halfExtents=list(half), rgbaColor=list(rgba))
         body = c.createMultiBody(0, -1, shape, list(centre),
                                  c.getQuaternionFromEuler([0, 0, yaw]))
         if texture:
             c.changeVisualShape(body, -1, textureUniqueId=self.texture(texture))
-        return body
+        return self._made(body, kind)
 
-    def cylinder(self, x, y, radius, height, rgba, z0: float = 0.0) -> int:
+    def cylinder(self, x, y, radius, height, rgba, z0: float = 0.0, kind: str = 'prop') -> int:
         c = self.client
         shape = c.createVisualShape(c.GEOM_CYLINDER, radius=radius, length=height,
                                     rgbaColor=list(rgba))
-        return c.createMultiBody(0, -1, shape, [x, y, z0 + height / 2])
+        return self._made(c.createMultiBody(0, -1, shape, [x, y, z0 + height / 2]), kind)
 
-    def sphere(self, x, y, z, radius, rgba) -> int:
+    def sphere(self, x, y, z, radius, rgba, kind: str = 'prop') -> int:
         c = self.client
         shape = c.createVisualShape(c.GEOM_SPHERE, radius=radius, rgbaColor=list(rgba))
-        return c.createMultiBody(0, -1, shape, [x, y, z])
+        return self._made(c.createMultiBody(0, -1, shape, [x, y, z]), kind)
 
     def ground(self, size: float, texture: str) -> int:
-        return self.box((0, 0, -0.05), (size, size, 0.05), texture=texture)
+        return self.box((0, 0, -0.05), (size, size, 0.05), texture=texture, kind='ground')
 
     def walls(self, bounds, height: float, texture: str) -> None:
         x0, y0, x1, y1 = bounds
@@ -217,7 +222,7 @@ class Builder:
                              ((cx, y1 + 0.1, height / 2), ((x1 - x0) / 2 + 0.2, 0.1, height / 2)),
                              ((x0 - 0.1, cy, height / 2), (0.1, (y1 - y0) / 2, height / 2)),
                              ((x1 + 0.1, cy, height / 2), (0.1, (y1 - y0) / 2, height / 2))):
-            self.box(centre, half, texture=texture)
+            self.box(centre, half, texture=texture, kind='wall')
 
     def colour(self, low: float = 0.1, high: float = 0.9) -> tuple[float, float, float, float]:
         return (*self.rng.uniform(low, high, 3), 1.0)
@@ -225,10 +230,15 @@ class Builder:
 
 @dataclass
 class Scene:
-    """What a scene builder made: its plan and how many distractors walk or play in it."""
+    """
+    What a scene builder made.
+
+    Its plan, how many distractors walk or play in it and what each static body is.
+    """
 
     plan: Plan
     distractors: int
+    kinds: dict[int, str]
 
 
 def build(name: str, client, rng: np.random.Generator, folder: Path) -> Scene:
@@ -236,68 +246,72 @@ def build(name: str, client, rng: np.random.Generator, folder: Path) -> Scene:
     if name not in SCENES:
         raise ConfigError(f'unknown scene {name!r}; known: {", ".join(SCENES)}')
     b = Builder(client, rng, folder)
-    return {'room': _room, 'urban': _urban, 'snow': _snow, 'parking': _parking}[name](b)
+    plan, distractors = {'room': _room, 'urban': _urban, 'snow': _snow,
+                         'parking': _parking}[name](b)
+    return Scene(plan, distractors, b.kinds)
 
 
-def _room(b: Builder) -> Scene:
+def _room(b: Builder) -> tuple[Plan, int]:
     plan = Plan((-6.0, -5.0, 6.0, 5.0))
     b.ground(8, 'floor')
     b.walls(plan.bounds, 3.0, 'wall')
     for _ in range(4):          # tables and cabinets along the walls
         x, y = b.rng.uniform(-5, 5), b.rng.choice([-4.3, 4.3])
         w, d, h = b.rng.uniform(0.4, 0.9), b.rng.uniform(0.3, 0.5), b.rng.uniform(0.7, 1.8)
-        b.box((x, y, h / 2), (w, d, h), b.colour())
+        b.box((x, y, h / 2), (w, d, h), b.colour(), kind='furniture')
         plan.obstacles.append((x, y, max(w, d) + 0.1))
-    return Scene(plan, distractors=1)
+    return plan, 1
 
 
-def _urban(b: Builder) -> Scene:
+def _urban(b: Builder) -> tuple[Plan, int]:
     plan = Plan((-12.0, -4.0, 12.0, 4.0))
     b.ground(14, 'road')
     for side in (-1, 1):
         for k in range(6):     # facades, every other one with a glass front
             x = -12.5 + 4.5 * k
-            b.box((x, side * 4.8, 4.0), (2.2, 0.6, 4.0),
-                  texture='glass' if (k + (side > 0)) % 2 else 'facade')
+            glass = (k + (side > 0)) % 2
+            b.box((x, side * 4.8, 4.0), (2.2, 0.6, 4.0), texture='glass' if glass else 'facade',
+                  kind='glass' if glass else 'facade')
         for x in np.arange(-10, 11, 5.0):   # lamp posts along the pavement
-            b.cylinder(x, side * 3.6, 0.08, 3.5, (0.2, 0.2, 0.25, 1))
+            b.cylinder(x, side * 3.6, 0.08, 3.5, (0.2, 0.2, 0.25, 1), kind='post')
             plan.obstacles.append((x, side * 3.6, 0.25))
-    return Scene(plan, distractors=5)
+    return plan, 5
 
 
-def _snow(b: Builder) -> Scene:
+def _snow(b: Builder) -> tuple[Plan, int]:
     plan = Plan((-12.0, -12.0, 12.0, 12.0))
     b.ground(14, 'snow')
     for _ in range(14):        # trees: trunk and a dark crown
         x, y = b.rng.uniform(-11, 11, 2)
         if math.hypot(x, y) < 3:
             continue
-        b.cylinder(x, y, 0.15, 1.2, (0.35, 0.25, 0.15, 1))
-        b.sphere(x, y, 2.0, b.rng.uniform(0.7, 1.1), (0.1, 0.3, 0.15, 1))
+        b.cylinder(x, y, 0.15, 1.2, (0.35, 0.25, 0.15, 1), kind='tree')
+        b.sphere(x, y, 2.0, b.rng.uniform(0.7, 1.1), (0.1, 0.3, 0.15, 1), kind='tree')
         plan.obstacles.append((x, y, 0.5))
     for _ in range(3):         # huts
         x, y = b.rng.uniform(-9, 9, 2)
         if math.hypot(x, y) < 4:
             continue
-        b.box((x, y, 1.2), (1.4, 1.2, 1.2), (0.45, 0.3, 0.2, 1), yaw=b.rng.uniform(0, 3))
+        b.box((x, y, 1.2), (1.4, 1.2, 1.2), (0.45, 0.3, 0.2, 1), yaw=b.rng.uniform(0, 3),
+              kind='hut')
         plan.obstacles.append((x, y, 2.0))
-    return Scene(plan, distractors=2)
+    return plan, 2
 
 
-def _parking(b: Builder) -> Scene:
+def _parking(b: Builder) -> tuple[Plan, int]:
     plan = Plan((-12.0, -10.0, 12.0, 10.0))
     b.ground(14, 'concrete')
-    b.box((0, 0, 3.1), (12.5, 10.5, 0.1), (0.5, 0.5, 0.52, 1))   # the deck above
+    b.box((0, 0, 3.1), (12.5, 10.5, 0.1), (0.5, 0.5, 0.52, 1), kind='deck')   # above
     for x in np.arange(-9, 10, 6.0):   # pillars
         for y in np.arange(-7.5, 8, 5.0):
-            b.box((x, y, 1.5), (0.3, 0.3, 1.5), texture='concrete')
+            b.box((x, y, 1.5), (0.3, 0.3, 1.5), texture='concrete', kind='pillar')
             plan.obstacles.append((x, y, 0.5))
     for y in (-9.0, 9.0):              # rows of parked cars along two sides
         for x in np.arange(-10, 11, 2.6):
             if b.rng.random() < 0.25:
                 continue
             colour = b.colour(0.05, 0.95)
-            b.box((x, y, 0.45), (1.0, 2.1, 0.45), colour)
-            b.box((x, y, 1.1), (0.8, 1.1, 0.25), (0.15, 0.18, 0.22, 1))
+            b.box((x, y, 0.45), (1.0, 2.1, 0.45), colour, kind='car')
+            b.box((x, y, 1.1), (0.8, 1.1, 0.25), (0.15, 0.18, 0.22, 1), kind='car')
             plan.obstacles.append((x, y, 2.2))
-    return Scene(plan, distractors=2)
+    return plan, 2

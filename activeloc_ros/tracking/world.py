@@ -220,6 +220,9 @@ class TrackingWorld:
         for person, walker, _ in self.people:
             person.place(walker.x, walker.y, walker.heading, 0.0, 0.0)
         self.target_body = self.people[0][0].body
+        self.kinds = {**built.kinds, **{p.body: 'distractor' for p, _, _ in self.people[1:]},
+                      self.target_body: 'person'}
+        self._seg: np.ndarray | None = None
         vfov = 2 * math.degrees(math.atan(cfg.height / 2 / self.intrinsics.fy))
         self._projection = c.computeProjectionMatrixFOV(vfov, cfg.width / cfg.height, 0.1, 60.0)
         self.index, self.t = -1, 0.0
@@ -337,6 +340,7 @@ class TrackingWorld:
     def observe(self) -> View:
         """The camera's picture now, with the target's true box (None when out of view)."""
         rgb, seg = self.render()
+        self._seg = seg
         box = mask_box(seg, self.target_body, self.config.min_visible_px)
         truth = np.zeros((0, 2))
         if box is not None:
@@ -346,6 +350,20 @@ class TrackingWorld:
                          truth[0] if len(truth) else None, np.array([intr.cx, intr.cy]),
                          truth_box=box)
         return self.view
+
+    def kind_at(self, u: float, v: float) -> str:
+        """
+        Name what the newest view shows at pixel (u, v).
+
+        The scene's kinds (ground, wall, furniture, facade, glass, post, tree, hut, pillar,
+        car, deck), ``person`` (the target), ``distractor`` or ``sky`` (no body).
+        """
+        if self._seg is None:
+            raise ConfigError('kind_at before the first view')
+        h, w = self._seg.shape
+        row, col = min(max(int(round(v)), 0), h - 1), min(max(int(round(u)), 0), w - 1)
+        body = int(self._seg[row, col])
+        return 'sky' if body < 0 else self.kinds.get(body, 'prop')
 
     def to_scene(self, view: View, uv: tuple[float, float]) -> None:
         """No screen here: a location has no scene pixel."""
