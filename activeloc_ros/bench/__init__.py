@@ -1,5 +1,6 @@
 """Benchmarks: `python -m activeloc_ros.bench {perception,passive,screen,...} --help`."""
 import argparse
+import io
 import json
 import multiprocessing
 import os
@@ -9,6 +10,7 @@ from typing import Callable, Iterator
 
 from activeloc_ros import data
 from activeloc_ros.errors import ConfigError
+from activeloc_ros.paths import write_atomic
 
 
 def names(values: list[str] | None) -> list[str]:
@@ -56,6 +58,17 @@ def output_dir(path: str | Path, option: str = '--out') -> Path:
     if not os.access(out, os.W_OK | os.X_OK):
         raise ConfigError(f'{option} {path}: cannot write there')
     return out
+
+
+def save_png(fig, path: Path, *, dpi: int = 110) -> Path:
+    """Lay out a matplotlib figure, write it to ``path`` as PNG (atomically) and close it."""
+    import matplotlib.pyplot as plt
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format='png', dpi=dpi)
+    plt.close(fig)
+    write_atomic(path, buf.getvalue())
+    return path
 
 
 def add_jobs_option(p: argparse.ArgumentParser) -> None:

@@ -29,7 +29,7 @@ import numpy as np
 from activeloc_ros import data
 from activeloc_ros.bench import (
     add_jobs_option, add_output_options, add_sequence_options, check_seed, in_threads,
-    key_values, load_selected, names, output_dir, run_jobs)
+    key_values, load_selected, names, output_dir, run_jobs, save_png)
 from activeloc_ros.bench.methods import (
     CONTROL_OPTIONS, controller_for, make_pointer, METHODS, MODEL_METHODS, params_file,
     PD_PARAMS)
@@ -286,13 +286,7 @@ def plots(result: dict, out: Path) -> list[Path]:
         ax.set_ylabel(title)
         ax.set_title(f'{title} per sequence ({better})')
         ax.legend(fontsize=7, ncol=2, loc='upper left', bbox_to_anchor=(1.0, 1.0))
-        fig.tight_layout()
-        buf = io.BytesIO()
-        fig.savefig(buf, format='png', dpi=110)
-        plt.close(fig)
-        path = out / f'{key}.png'
-        write_atomic(path, buf.getvalue())
-        paths.append(path)
+        paths.append(save_png(fig, out / f'{key}.png'))
     return paths + time_plots(result, out)
 
 

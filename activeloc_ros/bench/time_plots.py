@@ -2,11 +2,10 @@
 Per-sequence plots over time of the screen benchmark: AAE, pan and tilt of every method,
 from the per-frame records that `screen.json` holds (`frames`, `frame_columns`).
 """
-import io
 import math
 from pathlib import Path
 
-from activeloc_ros.paths import write_atomic
+from activeloc_ros.bench import save_png
 
 PANELS = (('aae_deg', 'AAE (deg)'), ('pan_deg', 'pan (deg)'), ('tilt_deg', 'tilt (deg)'))
 
@@ -46,11 +45,5 @@ def time_plots(result: dict, out: Path) -> list[Path]:
         axes[-1].set_xlabel('scene time (s)')
         axes[0].set_title(f'{sequence}: error to the closest actor and camera angles')
         axes[0].legend(fontsize=7, ncol=2, loc='upper left', bbox_to_anchor=(1.0, 1.0))
-        fig.tight_layout()
-        buf = io.BytesIO()
-        fig.savefig(buf, format='png', dpi=100)
-        plt.close(fig)
-        path = out / f'time_{sequence}.png'
-        write_atomic(path, buf.getvalue())
-        paths.append(path)
+        paths.append(save_png(fig, out / f'time_{sequence}.png', dpi=100))
     return paths

@@ -14,8 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from activeloc_ros.bench import protocol
-from activeloc_ros.paths import write_atomic
+from activeloc_ros.bench import protocol, save_png
 from activeloc_ros.tracking.reward import LOST_CAUSES
 from activeloc_ros.tracking.scenes import PAPER_NAMES
 
@@ -209,11 +208,5 @@ def plots(result: dict, out: Path) -> list[Path]:
                       ha='right', fontsize=8)
         ax.set_title(f'{scene} ({PAPER_NAMES[scene]}): higher is better')
         ax.legend(fontsize=8)
-        fig.tight_layout()
-        buf = io.BytesIO()
-        fig.savefig(buf, format='png', dpi=110)
-        plt.close(fig)
-        path = out / f'{scene}.png'
-        write_atomic(path, buf.getvalue())
-        paths.append(path)
+        paths.append(save_png(fig, out / f'{scene}.png'))
     return paths
