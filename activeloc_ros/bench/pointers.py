@@ -172,43 +172,42 @@ def _map_pointing(heat: np.ndarray | None, image_wh: tuple[int, int]) -> Pointin
     return Pointing(metrics.peak_point(heat, image_wh), heat, float(heat.max()))
 
 
-class FrameDiffPointer:
+class _MotionPointer:
+    """Steer to the cell that moved most in a motion map (``motion``: ``reset``, ``step``)."""
+
+    def reset(self, sequence: str) -> None:
+        self.motion.reset()
+
+    def locate(self, view: View) -> Pointing:
+        h, w = view.rgb.shape[:2]
+        return _map_pointing(self.motion.step(view.rgb), (w, h))
+
+
+class FrameDiffPointer(_MotionPointer):
     """
-    Frame differencing with the camera's own motion taken out as the model's is
-    (`perception.motion.FrameDifference`): steers to the cell that changed most.
+    Steer by frame differencing, the camera's own motion taken out as the model's is.
+
+    `perception.motion.FrameDifference`: to the cell that changed most.
     """
 
     def __init__(self, name: str = 'framediff'):
         from activeloc_ros.perception.motion import FrameDifference
         self.name = name
-        self.diff = FrameDifference()
-
-    def reset(self, sequence: str) -> None:
-        self.diff.reset()
-
-    def locate(self, view: View) -> Pointing:
-        h, w = view.rgb.shape[:2]
-        return _map_pointing(self.diff.step(view.rgb), (w, h))
+        self.motion = FrameDifference()
 
 
-class FlowPointer:
+class FlowPointer(_MotionPointer):
     """
-    The length of DIS dense optical flow, the camera's own motion taken out as for
-    framediff (`perception.motion.FlowMagnitude`): steers to the cell that moved most.
+    Steer by the length of DIS dense optical flow, the camera's own motion taken out.
+
+    `perception.motion.FlowMagnitude`, as for framediff: to the cell that moved most.
     """
 
     name = 'flow'
 
     def __init__(self):
         from activeloc_ros.perception.motion import FlowMagnitude
-        self.flow = FlowMagnitude()
-
-    def reset(self, sequence: str) -> None:
-        self.flow.reset()
-
-    def locate(self, view: View) -> Pointing:
-        h, w = view.rgb.shape[:2]
-        return _map_pointing(self.flow.step(view.rgb), (w, h))
+        self.motion = FlowMagnitude()
 
 
 class Mog2Pointer:
