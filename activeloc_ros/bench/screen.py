@@ -333,7 +333,7 @@ def parser() -> argparse.ArgumentParser:
     add_jobs_option(p)
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--no-video', action='store_true', help='no overlay videos')
-    add_output_options(p, 'results, plots and videos go here (default out/screen)',
+    add_output_options(p, 'results, plots and videos go here (default %(default)s)',
                        'out/screen')
     return p
 

@@ -257,7 +257,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--videos', choices=('first', 'all', 'none'), default='first',
                    help='overlay videos of the first episode of each scene and method '
                         '(default), of every episode, or none')
-    add_output_options(p, 'results, plots and videos go here (default out/tracking)',
+    add_output_options(p, 'results, plots and videos go here (default %(default)s)',
                        'out/tracking')
     return p
 

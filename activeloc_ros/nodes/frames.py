@@ -85,8 +85,7 @@ def lockstep_wiring(node, state_type, state_topic: str) -> Lockstep:
         feed(lambda t_ns: step.on_location(t_ns, time.monotonic())), RELIABLE)
     node.ignored_sub = node.create_subscription(
         PointStamped, 'action_location/ignored', feed(step.on_ignored), RELIABLE)
-    node.state_sub = node.create_subscription(state_type, state_topic, feed(step.on_state),
-                                              RELIABLE)
+    node.create_subscription(state_type, state_topic, feed(step.on_state), RELIABLE)
     return step
 
 
