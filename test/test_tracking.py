@@ -504,6 +504,26 @@ def test_recall_intervals_and_paired_differences():
     assert paired({'episodes': episodes}, 'ours', 'tld', 'room') is None
 
 
+def test_tracking_pair_sets_two_saved_runs_against_each_other(tmp_path, capsys):
+    from activeloc_ros.bench import tracking_pair
+
+    def run(name, recalls):
+        path = tmp_path / f'{name}.json'
+        path.write_text(json.dumps({'episodes': [
+            {'method': 'ours', 'scene': scene, 'episode': e, 'scores': {'recall': r}}
+            for scene in ('room', 'snow') for e, r in enumerate(recalls)]}))
+        return str(path)
+    base, better = run('base', [0.2, 0.3, 0.4, 0.5]), run('better', [0.5, 0.6, 0.7, 0.8])
+    assert tracking_pair.main([base, better]) == 0
+    out = capsys.readouterr().out
+    assert '  room     +0.300 [+0.300, +0.300], 4/4' in out
+    assert '  all      +0.300 [+0.300, +0.300], 8/8' in out
+    assert tracking_pair.main([base, better + '#csrt']) == 2
+    assert "no episodes of 'csrt'" in capsys.readouterr().err
+    assert tracking_pair.main([base, str(tmp_path / 'none.json')]) == 2
+    assert tracking_pair.main([base, better, '--key', 'reward']) == 2
+
+
 def test_the_papers_table1_row_is_in_its_columns():
     """
     Paper Table 1, Ours: SnowVillage 0.68 / 0.16 (0.36), DuelingRoom 0.85 / 0.26 (0.41),

@@ -10,6 +10,8 @@ COMMANDS = {
                'projected-screen experiment, closed loop (paper Table 2)'),
     'tracking': ('activeloc_ros.bench.tracking',
                  'simulated active tracking, mobile base (paper Tables 1 and 3)'),
+    'tracking-pair': ('activeloc_ros.bench.tracking_pair',
+                      'two saved tracking runs, episode by episode: better, or luck'),
     'compare': ('activeloc_ros.bench.compare',
                 'selection protocol: is a configuration better than another, or luck'),
     'decisions': ('activeloc_ros.bench.decisions',

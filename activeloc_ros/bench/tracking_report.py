@@ -63,17 +63,18 @@ def interval(values: list[float]) -> tuple[float, float]:
     return float(low), float(high)
 
 
-def paired(result: dict, method: str, other: str, scene: str, key: str = 'recall'):
+def paired(result: dict, method: str, other: str, scene: str | None, key: str = 'recall'):
     """
-    Compare ``method`` with ``other`` on ``scene``, episode by episode.
+    Compare ``method`` with ``other`` on ``scene`` (None: every scene), episode by episode.
 
     Return the mean of method minus other, its 95% interval (a paired bootstrap over the
-    episodes both ran, `protocol.compare`) and the episodes where ``method`` scored higher;
-    None when they share no episode.
+    episodes both ran, `protocol.compare`), the episodes where ``method`` scored higher and
+    how many there were; None when they share no episode.
     """
     def scores(name: str) -> dict[str, dict[int, float]]:
-        return {str(e['episode']): {0: e['scores'][key]} for e in result['episodes']
-                if e['method'] == name and e['scene'] == scene}
+        return {f'{e["scene"]}/{e["episode"]}': {0: e['scores'][key]}
+                for e in result['episodes']
+                if e['method'] == name and scene in (None, e['scene'])}
     base, candidate = scores(other), scores(method)
     if not set(base) & set(candidate):
         return None
