@@ -256,3 +256,42 @@ def test_a_start_that_swallows_the_stop_is_ended_all_the_same(tmp_path):
             process.wait()
     text = process.stdout.read()
     assert code == 0 and 'before the node was ready: its start went on' in text, text
+
+
+EXTENSION_START = """
+import ctypes, sys
+from activeloc_ros.nodes.process import run
+
+def make_node(context):        # a start inside an extension's call into Python
+    call = ctypes.pythonapi.PyRun_String          # (pybind11's exec, in torch, is one)
+    call.restype = ctypes.py_object
+    call.argtypes = [ctypes.c_char_p, ctypes.c_int, ctypes.py_object, ctypes.py_object]
+    call(b"print('starting', flush=True); import time; time.sleep(30)", 257, {}, {})
+    raise SystemExit('the start was not ended')
+
+sys.exit(run(make_node, [], on_stop=lambda node: None))
+"""
+
+
+def test_a_stop_inside_an_extensions_call_into_python_exits_0(tmp_path):
+    """
+    End with 0 after a Ctrl-C inside an extension's call into Python.
+
+    A KeyboardInterrupt that passes through such a call leaves CPython marked to end a
+    ``python -m`` run with SIGINT, however it was caught: perception, stopped 3.5 s into
+    its start, once exited -2 after saying it had stopped.
+    """
+    (tmp_path / 'extension_start.py').write_text(EXTENSION_START)
+    process = subprocess.Popen([sys.executable, '-m', 'extension_start'], cwd=tmp_path,
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                               env=dict(os.environ, PYTHONPATH=str(REPO)))
+    try:
+        assert process.stdout.readline().strip() == 'starting'
+        process.send_signal(signal.SIGINT)
+        code = process.wait(timeout=10)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    text = process.stdout.read()
+    assert code == 0 and 'before the node was ready' in text, (code, text)
