@@ -263,7 +263,7 @@ import ctypes, sys
 from activeloc_ros.nodes.process import run
 
 def make_node(context):        # a start inside an extension's call into Python
-    call = ctypes.pythonapi.PyRun_String          # (pybind11's exec, in torch, is one)
+    call = ctypes.pythonapi.PyRun_String          # (as pybind11's exec does)
     call.restype = ctypes.py_object
     call.argtypes = [ctypes.c_char_p, ctypes.c_int, ctypes.py_object, ctypes.py_object]
     call(b"print('starting', flush=True); import time; time.sleep(30)", 257, {}, {})
@@ -284,7 +284,8 @@ def test_a_stop_inside_an_extensions_call_into_python_exits_0(tmp_path):
     (tmp_path / 'extension_start.py').write_text(EXTENSION_START)
     process = subprocess.Popen([sys.executable, '-m', 'extension_start'], cwd=tmp_path,
                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                               env=dict(os.environ, PYTHONPATH=str(REPO)))
+                               env=dict(os.environ, PYTHONPATH=os.pathsep.join(
+                                   filter(None, [str(REPO), os.environ.get('PYTHONPATH')]))))
     try:
         assert process.stdout.readline().strip() == 'starting'
         process.send_signal(signal.SIGINT)

@@ -238,10 +238,10 @@ def _end_after_a_stopped_start(code: int) -> None:
     End the process now, with ``code``, after a stop interrupted its start.
 
     The stop raised KeyboardInterrupt in the start. When that passed through an
-    extension's call into Python (pybind11's exec, in torch's start-up), CPython marks the
-    run to end with SIGINT however it was caught, and a ``python -m`` process (every node,
-    as bringup starts them) exits -2 after its clean stop. The node is gone and the
-    context shut down, so nothing is left to finalise.
+    extension's call into Python (C++ running Python code, as pybind11's exec does),
+    CPython marks the run to end with SIGINT however it was caught, and a ``python -m``
+    process (every node, as bringup starts them) exits -2 after its clean stop. The node is
+    gone and the context shut down, so nothing is left to finalise.
     """
     sys.stdout.flush()
     sys.stderr.flush()
