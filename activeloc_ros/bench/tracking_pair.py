@@ -22,14 +22,15 @@ from activeloc_ros.tracking.scenes import SCENES
 def load_side(side: str) -> tuple[list[dict], str]:
     """Read the episodes of one method from ``FILE[#METHOD]``."""
     path, _, method = side.partition('#')
+    method = method or 'ours'
     try:
         episodes = json.loads(Path(path).read_text())['episodes']
     except (OSError, ValueError, KeyError, TypeError) as err:
         raise ConfigError(f'{path}: not a bench tracking result ({err})') from err
-    mine = [e for e in episodes if e['method'] == (method or 'ours')]
+    mine = [e for e in episodes if e['method'] == method]
     if not mine:
-        raise ConfigError(f'{path}: no episodes of {method or "ours"!r}')
-    return mine, method or 'ours'
+        raise ConfigError(f'{path}: no episodes of {method!r}')
+    return mine, method
 
 
 def parser() -> argparse.ArgumentParser:
